@@ -1,0 +1,1 @@
+"""Neural renderer: rasterizer, neural texture, U-Nets (built in a later stage)."""

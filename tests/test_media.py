@@ -1,0 +1,345 @@
+"""Tests for nvp.media on tiny synthetic media made in tmp_path."""
+
+from __future__ import annotations
+
+from fractions import Fraction
+from pathlib import Path
+
+import av
+import numpy as np
+import pytest
+import soundfile as sf
+
+from nvp import media
+from nvp.errors import MediaError
+from nvp.media import VideoWriter, has_audio, iter_frames, probe_video, read_audio, rotate_frame
+
+# ----------------------------------------------------------------------------------------------- helpers
+
+
+def pattern(i: int, height: int = 48, width: int = 64) -> np.ndarray:
+    """Smooth, frame-dependent RGB test pattern (compresses well, so errors stay small)."""
+    y, x = np.mgrid[0:height, 0:width]
+    r = 40 + 160 * x / max(width - 1, 1)
+    g = 40 + 160 * y / max(height - 1, 1)
+    b = np.full_like(r, 30 + 20 * i)
+    return np.stack([r, g, b], axis=-1).astype(np.uint8)
+
+
+def tone(freq: float, seconds: float, rate: int = 16000, amp: float = 0.5) -> np.ndarray:
+    t = np.arange(round(seconds * rate)) / rate
+    return (amp * np.sin(2 * np.pi * freq * t)).astype(np.float32)
+
+
+def peak_frequency(x: np.ndarray, rate: int) -> float:
+    spectrum = np.abs(np.fft.rfft(x * np.hanning(len(x))))
+    return float(np.fft.rfftfreq(len(x), 1 / rate)[np.argmax(spectrum)])
+
+
+def write_pyav(
+    path: Path,
+    levels_pts: list[tuple[int, int]],
+    size=(32, 16),
+    rotation: int | None = None,
+    gop: int | None = None,
+) -> None:
+    """Write grey frames (level, pts in ms) with PyAV directly, for timestamp/rotation tests."""
+    w, h = size
+    options = {"bf": "0"}
+    if gop is not None:
+        options.update({"g": str(gop), "keyint_min": str(gop), "sc_threshold": "0"})
+    with av.open(str(path), "w") as c:
+        s = c.add_stream("libx264", rate=25, options=options)
+        s.width, s.height, s.pix_fmt = w, h, "yuv420p"
+        s.codec_context.time_base = Fraction(1, 1000)
+        if rotation is not None:
+            s.set_display_rotation(rotation)  # counter-clockwise degrees, as FFmpeg's -display_rotation
+        for level, pts in levels_pts:
+            img = np.full((h, w, 3), level, np.uint8)
+            if rotation is not None:
+                img[:6, :6] = 255  # marker in the stored top-left corner
+                img[6:, :] = 0
+            f = av.VideoFrame.from_ndarray(img, format="rgb24")
+            f.pts, f.time_base = pts, Fraction(1, 1000)
+            c.mux(s.encode(f))
+        c.mux(s.encode())
+
+
+def level_index(frame: np.ndarray, base: int = 10, step: int = 40) -> int:
+    return int(round((float(frame.mean()) - base) / step))
+
+
+@pytest.fixture
+def clip(tmp_path: Path) -> Path:
+    """10 frames of the test pattern at 25 fps with a 440 Hz tone, written by VideoWriter."""
+    path = tmp_path / "clip.mp4"
+    with VideoWriter(
+        path, fps=25, width=64, height=48, audio=tone(440, 0.4), metadata={"nvp_test": "yes"}
+    ) as w:
+        for i in range(10):
+            w.write(pattern(i))
+    return path
+
+
+# ----------------------------------------------------------------------------------------------- round trip
+
+
+def test_round_trip_probe(clip: Path) -> None:
+    info = probe_video(clip)
+    assert (info.width, info.height) == (64, 48)
+    assert info.fps == 25.0
+    assert info.num_frames == 10
+    assert info.duration_s == pytest.approx(0.4)
+    assert info.rotation == 0
+    assert not info.variable_frame_rate
+    assert info.has_audio and info.audio_sample_rate == 16000
+    assert info.codec == "h264"
+    assert has_audio(clip)
+
+
+def test_round_trip_frames(clip: Path) -> None:
+    frames = list(iter_frames(clip))
+    assert len(frames) == 10
+    for i, f in enumerate(frames):
+        assert f.shape == (48, 64, 3) and f.dtype == np.uint8
+        assert np.abs(f.astype(int) - pattern(i)).mean() < 3.0
+
+
+def test_round_trip_audio(clip: Path) -> None:
+    audio = read_audio(clip, sample_rate=16000)
+    assert audio.dtype == np.float32 and audio.ndim == 1
+    assert len(audio) == 6400  # trimmed/padded to the video duration, encoder padding removed
+    assert abs(peak_frequency(audio, 16000) - 440) < 5
+    assert 0.4 < np.abs(audio[1000:5000]).max() <= 0.55
+
+
+def test_metadata_read_back(clip: Path) -> None:
+    with av.open(str(clip)) as c:
+        assert c.metadata["nvp_test"] == "yes"
+
+
+def test_start_frame_and_max_frames(clip: Path) -> None:
+    assert len(list(iter_frames(clip, max_frames=3))) == 3
+    part = list(iter_frames(clip, start_frame=7))
+    assert len(part) == 3
+    assert np.abs(part[0].astype(int) - pattern(7)).mean() < 3.0
+    assert list(iter_frames(clip, start_frame=10)) == []
+
+
+def test_seek_with_short_gop_matches_full_decode(tmp_path: Path) -> None:
+    path = tmp_path / "gop.mp4"
+    write_pyav(path, [(10 + 12 * k, 40 * k) for k in range(20)], gop=4)
+    full = [level_index(f, step=12) for f in iter_frames(path)]
+    assert full == list(range(20))
+    part = [level_index(f, step=12) for f in iter_frames(path, start_frame=11, max_frames=5)]
+    assert part == full[11:16]
+
+
+def test_resample_to_other_fps(clip: Path) -> None:
+    frames = list(iter_frames(clip, fps=50))
+    assert len(frames) == 20
+    b = [int(round((float(f[..., 2].mean()) - 30) / 20)) for f in frames]
+    assert b == [0, 0, 1, 1, 2, 2, 3, 3, 4, 4, 5, 5, 6, 6, 7, 7, 8, 8, 9, 9]
+    assert frames[0] is not frames[1]  # duplicates are independent arrays
+
+
+# ----------------------------------------------------------------------------------------------- formats
+
+
+def test_fractional_fps(tmp_path: Path) -> None:
+    path = tmp_path / "ntsc.mp4"
+    with VideoWriter(path, fps=29.97, width=32, height=32) as w:
+        for i in range(10):
+            w.write(pattern(i, 32, 32))
+    info = probe_video(path)
+    assert info.fps == pytest.approx(29.97, abs=1e-9)
+    assert info.num_frames == 10
+    assert info.duration_s == pytest.approx(10 / 29.97, abs=1e-6)
+    assert not info.has_audio and info.audio_sample_rate is None
+    assert len(list(iter_frames(path))) == 10
+
+
+def test_odd_size_is_padded_by_edge_replication(tmp_path: Path) -> None:
+    path = tmp_path / "odd.mp4"
+    frames = [pattern(i, 21, 33) for i in range(5)]
+    with VideoWriter(path, fps=25, width=33, height=21) as w:
+        for f in frames:
+            w.write(f)
+    info = probe_video(path)
+    assert (info.width, info.height) == (34, 22)
+    out = list(iter_frames(path))
+    assert len(out) == 5 and out[0].shape == (22, 34, 3)
+    assert np.abs(out[2][:21, :33].astype(int) - frames[2]).mean() < 3.0
+    assert np.abs(out[2][:21, 33].astype(int) - frames[2][:, 32]).mean() < 4.0  # replicated last column
+    assert np.abs(out[2][21, :33].astype(int) - frames[2][20]).mean() < 4.0  # replicated last row
+
+
+def test_variable_frame_rate_is_put_on_grid(tmp_path: Path) -> None:
+    path = tmp_path / "vfr.mp4"
+    # frame k has grey level 10 + 40k and is shown from these times (ms); the last lasts 40 ms
+    write_pyav(path, [(10 + 40 * k, t) for k, t in enumerate([0, 40, 120, 160, 240, 280])])
+    info = probe_video(path)
+    assert info.variable_frame_rate
+    assert info.duration_s == pytest.approx(0.32)
+    # grid 0,40,...,280 ms: 80 ms and 200 ms fall midway, where the earlier frame is still showing
+    assert [level_index(f) for f in iter_frames(path, fps=25)] == [0, 1, 1, 2, 3, 3, 4, 5]
+    # at the mean rate (6 frames / 0.32 s) every frame appears once
+    assert info.fps == pytest.approx(18.75)
+    assert [level_index(f) for f in iter_frames(path)] == [0, 1, 2, 3, 4, 5]
+
+
+@pytest.mark.parametrize(
+    ("ccw", "rotation", "corner"),
+    [(90, 270, "bottom-left"), (-90, 90, "top-right"), (180, 180, "bottom-right")],
+)
+def test_display_matrix_rotation(tmp_path: Path, ccw: int, rotation: int, corner: str) -> None:
+    path = tmp_path / "rot.mp4"
+    write_pyav(path, [(0, 0), (0, 40)], size=(40, 20), rotation=ccw)
+    info = probe_video(path)
+    assert info.rotation == rotation
+    expected_shape = (20, 40, 3) if rotation == 180 else (40, 20, 3)
+    assert (info.height, info.width, 3) == expected_shape
+    frame = next(iter_frames(path))
+    assert frame.shape == expected_shape
+    h, w = frame.shape[:2]
+    ys, xs = np.nonzero(frame[..., 0] > 128)
+    top = ys.max() < 8
+    left = xs.max() < 8
+    assert (ys.min() >= h - 8 or top) and (xs.min() >= w - 8 or left)
+    assert corner == f"{'top' if top else 'bottom'}-{'left' if left else 'right'}"
+
+
+def test_rotate_frame_helper() -> None:
+    img = np.arange(6).reshape(2, 3)
+    assert rotate_frame(img, 0) is img
+    assert rotate_frame(img, 90).tolist() == [[3, 0], [4, 1], [5, 2]]  # clockwise
+    assert rotate_frame(img, 270).tolist() == [[2, 5], [1, 4], [0, 3]]
+    assert rotate_frame(img, 180).tolist() == [[5, 4, 3], [2, 1, 0]]
+    with pytest.raises(ValueError):
+        rotate_frame(img, 45)
+
+
+# ----------------------------------------------------------------------------------------------- audio
+
+
+def test_read_stereo_44k_wav(tmp_path: Path) -> None:
+    path = tmp_path / "stereo.wav"
+    left = tone(1000, 1.0, rate=44100, amp=0.5)
+    sf.write(path, np.stack([left, left], axis=1), 44100, subtype="PCM_16")
+    audio = read_audio(path)
+    assert audio.dtype == np.float32 and audio.ndim == 1
+    assert abs(len(audio) - 16000) <= 1
+    assert abs(peak_frequency(audio, 16000) - 1000) < 3
+    assert np.abs(audio[2000:14000]).max() == pytest.approx(0.5, abs=0.02)  # channels averaged
+
+
+def test_read_24bit_wav_at_other_rate(tmp_path: Path) -> None:
+    path = tmp_path / "mono24.wav"
+    sf.write(path, tone(300, 0.5, rate=22050, amp=0.9), 22050, subtype="PCM_24")
+    audio = read_audio(path, sample_rate=8000)
+    assert abs(len(audio) - 4000) <= 1
+    assert abs(peak_frequency(audio, 8000) - 300) < 4
+    assert np.abs(audio).max() <= 1.0
+
+
+def test_writer_pads_short_audio_and_accepts_stereo(tmp_path: Path) -> None:
+    path = tmp_path / "short_audio.mp4"
+    stereo = np.stack([tone(500, 0.2), tone(500, 0.2)], axis=1)
+    with VideoWriter(path, fps=25, width=16, height=16, audio=stereo) as w:
+        for i in range(10):
+            w.write(pattern(i, 16, 16))
+    audio = read_audio(path)
+    assert len(audio) == 6400
+    assert np.abs(audio[:3000]).max() > 0.3 and np.abs(audio[4000:]).max() < 0.05
+
+
+# ----------------------------------------------------------------------------------------------- writer
+
+
+def test_atomic_writer_leaves_nothing_on_exception(tmp_path: Path) -> None:
+    path = tmp_path / "out.mp4"
+    with pytest.raises(RuntimeError, match="boom"):
+        with VideoWriter(path, fps=25, width=16, height=16, audio=tone(440, 0.2)) as w:
+            w.write(pattern(0, 16, 16))
+            raise RuntimeError("boom")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_atomic_writer_keeps_existing_file_on_exception(tmp_path: Path) -> None:
+    path = tmp_path / "out.mp4"
+    path.write_bytes(b"previous")
+    with pytest.raises(ValueError, match=r"expected \(16, 16, 3\), found \(16, 17, 3\)"):
+        with VideoWriter(path, fps=25, width=16, height=16) as w:
+            w.write(pattern(0, 16, 16))
+            w.write(np.zeros((16, 17, 3), np.uint8))
+    assert path.read_bytes() == b"previous"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.mp4"]
+
+
+def test_writer_rejects_wrong_dtype(tmp_path: Path) -> None:
+    with VideoWriter(tmp_path / "x.mp4", fps=25, width=8, height=8) as w:
+        with pytest.raises(ValueError, match="uint8"):
+            w.write(np.zeros((8, 8, 3), np.float32))
+        w.write(np.zeros((8, 8, 3), np.uint8))
+    assert (tmp_path / "x.mp4").exists()
+
+
+def test_writer_without_frames_writes_nothing(tmp_path: Path) -> None:
+    with pytest.raises(MediaError, match="no frames"):
+        with VideoWriter(tmp_path / "empty.mp4", fps=25, width=8, height=8):
+            pass
+    assert list(tmp_path.iterdir()) == []
+
+
+# ----------------------------------------------------------------------------------------------- errors
+
+
+def test_missing_file(tmp_path: Path) -> None:
+    missing = tmp_path / "nope.mp4"
+    for fn in (probe_video, iter_frames, read_audio, has_audio):
+        with pytest.raises(MediaError, match="does not exist"):
+            fn(missing)
+
+
+def test_text_file_renamed_mp4(tmp_path: Path) -> None:
+    path = tmp_path / "fake.mp4"
+    path.write_text("this is not a video\n" * 20)
+    with pytest.raises(MediaError, match="fake.mp4"):
+        probe_video(path)
+    with pytest.raises(MediaError):
+        read_audio(path)
+
+
+def test_audio_only_file_is_not_a_video(tmp_path: Path) -> None:
+    path = tmp_path / "a.wav"
+    sf.write(path, tone(440, 0.1), 16000)
+    with pytest.raises(MediaError, match=r"no video stream \(found streams: audio\)"):
+        probe_video(path)
+    with pytest.raises(MediaError, match="no video stream"):
+        iter_frames(path)
+    assert has_audio(path)
+
+
+def test_video_without_audio(tmp_path: Path) -> None:
+    path = tmp_path / "silent.mp4"
+    with VideoWriter(path, fps=25, width=8, height=8) as w:
+        w.write(np.zeros((8, 8, 3), np.uint8))
+    assert not has_audio(path)
+    with pytest.raises(MediaError, match=r"no audio stream \(found streams: video\)"):
+        read_audio(path)
+
+
+def test_decode_error_names_frame_index(clip: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    real_decode = media._decode
+
+    def failing_decode(container, stream):
+        for n, frame in enumerate(real_decode(container, stream)):
+            if n == 4:
+                raise av.error.InvalidDataError(1094995529, "Invalid data found when processing input")
+            yield frame
+
+    monkeypatch.setattr(media, "_decode", failing_decode)
+    frames = iter_frames(clip)
+    with pytest.raises(MediaError, match="at output frame 3 of 10"):
+        for _ in frames:
+            pass

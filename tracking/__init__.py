@@ -1,0 +1,1 @@
+"""Monocular face tracking: landmark detection, face-model fitting, temporal smoothing."""

@@ -1,0 +1,91 @@
+"""Run the landmark detector over a whole video → ``Detections`` (streamed, bounded memory)."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from nvp.errors import NoFaceError
+from nvp.media import iter_frames, probe_video
+from tracking.landmarks import NUM_BLENDSHAPES, NUM_LANDMARKS, LandmarkDetector
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Detections:
+    """Raw per-frame detector output for a video on its constant-rate frame grid.
+
+    Attributes:
+        fps: frame rate of the grid, Hz.
+        width, height: frame size in pixels (after rotation metadata is applied).
+        points: ``(T, 478, 3)`` float32 landmarks (x, y pixels; z pixels, relative); NaN where not found.
+        blendshapes: ``(T, 52)`` float32 ARKit scores; NaN where not found.
+        found: ``(T,)`` bool, whether a face was detected in the frame.
+    """
+
+    fps: float
+    width: int
+    height: int
+    points: np.ndarray
+    blendshapes: np.ndarray
+    found: np.ndarray
+
+    def save(self, path: Path) -> None:
+        np.savez_compressed(
+            path, fps=self.fps, width=self.width, height=self.height, points=self.points,
+            blendshapes=self.blendshapes, found=self.found,
+        )
+
+    @classmethod
+    def load(cls, path: Path) -> Detections:
+        with np.load(path) as z:
+            return cls(
+                fps=float(z["fps"]), width=int(z["width"]), height=int(z["height"]),
+                points=z["points"], blendshapes=z["blendshapes"], found=z["found"],
+            )
+
+
+def detect_video(
+    path: str | Path,
+    *,
+    stride: int = 1,
+    max_frames: int | None = None,
+    progress: bool = True,
+) -> Detections:
+    """Detect landmarks on every ``stride``-th frame of a video.
+
+    Raises:
+        MediaError: unreadable file or no video stream.
+        NoFaceError: no face in any frame.
+    """
+    info = probe_video(path)
+    total = info.num_frames if max_frames is None else min(info.num_frames, max_frames)
+    pts, bss, found = [], [], []
+    with LandmarkDetector() as det:
+        frames = iter_frames(path, max_frames=max_frames)
+        bar = tqdm(total=total, desc=f"detect {Path(path).name}", unit="f", disable=not progress, leave=False)
+        for i, rgb in enumerate(frames):
+            bar.update(1)
+            if i % stride:
+                continue
+            r = det.detect(rgb, i / info.fps)
+            if r is None:
+                pts.append(np.full((NUM_LANDMARKS, 3), np.nan, np.float32))
+                bss.append(np.full(NUM_BLENDSHAPES, np.nan, np.float32))
+                found.append(False)
+            else:
+                pts.append(r.points)
+                bss.append(r.blendshapes)
+                found.append(True)
+        bar.close()
+    if not any(found):
+        raise NoFaceError(f"no face found in any of the {len(found)} frames of {path}")
+    return Detections(
+        fps=info.fps / stride, width=info.width, height=info.height,
+        points=np.stack(pts), blendshapes=np.stack(bss), found=np.asarray(found),
+    )

