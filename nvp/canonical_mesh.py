@@ -110,4 +110,6 @@ def parse_geometry_metadata(data: bytes) -> CanonicalMesh:
     for lid, weight in weights.items():
         if lid < len(w):
             w[lid] = weight
-    return CanonicalMesh(vertices=vb[:, :3].copy(), uvs=vb[:, 3:].copy(), triangles=tris, procrustes_weights=w)
+    return CanonicalMesh(
+        vertices=vb[:, :3].copy(), uvs=vb[:, 3:].copy(), triangles=tris, procrustes_weights=w
+    )

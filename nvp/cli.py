@@ -22,7 +22,7 @@ def _cmd_track(args: argparse.Namespace) -> int:
     valid = int(seq.valid.sum())
     print(
         f"tracked {seq.num_frames} frames ({valid} valid, {seq.num_frames - valid} bridged) "
-        f"in {seq.info['total_seconds']:.1f} s; median fit error {float(_nanmedian(seq.fit_error)):.2f} px → {out}"
+        f"in {seq.info['total_seconds']:.1f} s; median fit error {_nanmedian(seq.fit_error):.2f} px → {out}"
     )
     if args.preview:
         write_preview(args.video, seq, args.preview, progress=not args.quiet)
@@ -41,11 +41,13 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 def _nanmedian(x):
     import numpy as np
 
-    return np.nanmedian(x) if np.isfinite(x).any() else float("nan")
+    return float(np.nanmedian(x)) if np.isfinite(x).any() else float("nan")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="nvp", description="Neural Voice Puppetry: audio-driven facial reenactment.")
+    ap = argparse.ArgumentParser(
+        prog="nvp", description="Neural Voice Puppetry: audio-driven facial reenactment."
+    )
     ap.add_argument("--version", action="version", version=f"nvp {__version__}")
     ap.add_argument("-v", "--verbose", action="store_true", help="log details")
     ap.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
@@ -55,7 +57,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("video", type=Path, help="input video (mp4, mov, mkv, ...)")
     p.add_argument("-o", "--output", type=Path, required=True, help="output directory for tracked.json/.npz")
     p.add_argument("--preview", type=Path, help="also write an mp4 with the fitted mesh over the footage")
-    p.add_argument("--save-detections", action="store_true", help="also keep the raw landmarks (detections.npz)")
+    p.add_argument(
+        "--save-detections", action="store_true", help="also keep the raw landmarks (detections.npz)"
+    )
     p.set_defaults(func=_cmd_track)
 
     p = sub.add_parser("demo", help="make the shipped demo clip and run the pipeline on it")
@@ -66,7 +70,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(message)s")
+    logging.basicConfig(
+        level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(message)s"
+    )
     from nvp.errors import NvpError
 
     try:

@@ -84,9 +84,14 @@ class TrackedSequence:
         try:
             np.savez_compressed(
                 tmp / ARRAYS,
-                center=self.center, identity=self.identity, rotation=self.rotation,
-                translation=self.translation, expression=self.expression, landmarks=self.landmarks,
-                valid=self.valid, fit_error=self.fit_error,
+                center=self.center,
+                identity=self.identity,
+                rotation=self.rotation,
+                translation=self.translation,
+                expression=self.expression,
+                landmarks=self.landmarks,
+                valid=self.valid,
+                fit_error=self.fit_error,
             )
             manifest = {
                 "format": "nvp.tracked_sequence",
@@ -134,6 +139,11 @@ class TrackedSequence:
         except (OSError, ValueError, KeyError) as e:
             raise FormatError(f"cannot read tracking arrays next to {js}: {e}") from e
         return cls(
-            fps=float(m["fps"]), width=int(m["width"]), height=int(m["height"]), focal=float(m["focal"]),
-            face_model_sha256=m["face_model_sha256"], info=m.get("info", {}), **a,
+            fps=float(m["fps"]),
+            width=int(m["width"]),
+            height=int(m["height"]),
+            focal=float(m["focal"]),
+            face_model_sha256=m["face_model_sha256"],
+            info=m.get("info", {}),
+            **a,
         )

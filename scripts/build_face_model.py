@@ -1,4 +1,4 @@
-"""Build nvp's face model (``nvp/assets/face_model.{npz,json}``) from mediapipe's canonical mesh and real video.
+"""Build nvp's face model (``nvp/assets/face_model.{npz,json}``) from mediapipe's mesh and real video.
 
 Recipe (reproducible; run ``python scripts/build_face_model.py``):
 
@@ -80,6 +80,7 @@ def make_regions(verts: np.ndarray, tris: np.ndarray) -> tuple[dict, dict, dict]
     """Vertex regions, closing-triangle regions and landmark groups from the canonical mesh (cm, CV axes)."""
     lips_loops = sorted(connection_loops("FACE_LANDMARKS_LIPS"), key=len)
     lips = {int(i) for loop in lips_loops for i in loop}
+
     # outer loop encloses the inner one: pick by area in the frontal (x, y) plane
     def area(loop):
         p = verts[loop, :2]
@@ -213,8 +214,16 @@ def main(argv: list[str] | None = None) -> int:
         info=info,
     )
     js = model.save(args.out)
-    log.info("wrote %s: K_id=%d (%.1f %% var), K_exp=%d (%.1f %% var), %d frames of %d videos",
-             js, k_id, 100 * id_ratio.sum(), args.k_exp, 100 * exp_ratio.sum(), info["frames_total"], len(used))
+    log.info(
+        "wrote %s: K_id=%d (%.1f %% var), K_exp=%d (%.1f %% var), %d frames of %d videos",
+        js,
+        k_id,
+        100 * id_ratio.sum(),
+        args.k_exp,
+        100 * exp_ratio.sum(),
+        info["frames_total"],
+        len(used),
+    )
     log.info("%s", json.dumps({k: int(v.sum()) for k, v in {**vregions, **tregions}.items()}))
     return 0
 

@@ -15,7 +15,9 @@ def face_model():
     return default_face_model()
 
 
-def synthetic_sequence(model, *, frames=60, fps=25.0, size=512, focal=1024.0, noise_px=1.0, seed=0, missing=()):
+def synthetic_sequence(
+    model, *, frames=60, fps=25.0, size=512, focal=1024.0, noise_px=1.0, seed=0, missing=()
+):
     """Known identity, pose and expression, projected to 2D landmarks with Gaussian pixel noise.
 
     Returns (Detections, truth dict). Truth holds identity (K_id,), rotation (T,3,3), translation (T,3),
@@ -29,10 +31,14 @@ def synthetic_sequence(model, *, frames=60, fps=25.0, size=512, focal=1024.0, no
         amp = 1.0 if k < 12 else 0.3
         f1, ph = rng.uniform(0.5, 4.0), rng.uniform(0, 2 * np.pi)
         expression[:, k] = amp * np.sin(2 * np.pi * f1 * t + ph)
-    angles = np.stack([8 * np.sin(2 * np.pi * 0.3 * t), 20 * np.sin(2 * np.pi * 0.2 * t + 1), 5 * np.sin(t)], 1)
+    angles = np.stack(
+        [8 * np.sin(2 * np.pi * 0.3 * t), 20 * np.sin(2 * np.pi * 0.2 * t + 1), 5 * np.sin(t)], 1
+    )
     rotation = Rotation.from_euler("xyz", angles, degrees=True).as_matrix().astype(np.float32)
     depth = 60.0
-    translation = np.stack([np.sin(t) * 2, np.cos(t) * 1.5, depth + np.sin(0.7 * t) * 3], 1).astype(np.float32)
+    translation = np.stack([np.sin(t) * 2, np.cos(t) * 1.5, depth + np.sin(0.7 * t) * 3], 1).astype(
+        np.float32
+    )
     verts = model.vertices(identity, expression)
     cam = np.einsum("tij,tvj->tvi", rotation, verts) + translation[:, None]
     uv = cam[..., :2] / cam[..., 2:3] * focal + size / 2.0
@@ -45,11 +51,21 @@ def synthetic_sequence(model, *, frames=60, fps=25.0, size=512, focal=1024.0, no
     found[list(missing)] = False
     points[~found] = np.nan
     det = Detections(
-        fps=fps, width=size, height=size, points=points,
-        blendshapes=np.full((frames, 52), np.nan, np.float32), found=found,
+        fps=fps,
+        width=size,
+        height=size,
+        points=points,
+        blendshapes=np.full((frames, 52), np.nan, np.float32),
+        found=found,
     )
-    truth = dict(identity=identity, rotation=rotation, translation=translation, expression=expression,
-                 focal=focal, vertices=verts)
+    truth = dict(
+        identity=identity,
+        rotation=rotation,
+        translation=translation,
+        expression=expression,
+        focal=focal,
+        vertices=verts,
+    )
     return det, truth
 
 

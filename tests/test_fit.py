@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from tracking.fit import FitConfig, solve_block_tridiagonal, temporal_differences, FrameParams
+from tracking.fit import FitConfig, FrameParams, solve_block_tridiagonal, temporal_differences
 from tracking.track import fit_detections
 
 
@@ -116,5 +116,5 @@ def test_config_fields_are_documented():
 
     src = inspect.getsource(FitConfig)
     for f in dataclasses.fields(FitConfig):
-        assert f'{f.name}:' in src
+        assert f"{f.name}:" in src
     assert src.count('"""') >= 2 * (len(dataclasses.fields(FitConfig)) + 1) - 1

@@ -37,16 +37,25 @@ class Detections:
 
     def save(self, path: Path) -> None:
         np.savez_compressed(
-            path, fps=self.fps, width=self.width, height=self.height, points=self.points,
-            blendshapes=self.blendshapes, found=self.found,
+            path,
+            fps=self.fps,
+            width=self.width,
+            height=self.height,
+            points=self.points,
+            blendshapes=self.blendshapes,
+            found=self.found,
         )
 
     @classmethod
     def load(cls, path: Path) -> Detections:
         with np.load(path) as z:
             return cls(
-                fps=float(z["fps"]), width=int(z["width"]), height=int(z["height"]),
-                points=z["points"], blendshapes=z["blendshapes"], found=z["found"],
+                fps=float(z["fps"]),
+                width=int(z["width"]),
+                height=int(z["height"]),
+                points=z["points"],
+                blendshapes=z["blendshapes"],
+                found=z["found"],
             )
 
 
@@ -86,6 +95,10 @@ def detect_video(
     if not any(found):
         raise NoFaceError(f"no face found in any of the {len(found)} frames of {path}")
     return Detections(
-        fps=info.fps / stride, width=info.width, height=info.height,
-        points=np.stack(pts), blendshapes=np.stack(bss), found=np.asarray(found),
+        fps=info.fps / stride,
+        width=info.width,
+        height=info.height,
+        points=np.stack(pts),
+        blendshapes=np.stack(bss),
+        found=np.asarray(found),
     )

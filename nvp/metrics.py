@@ -1,0 +1,36 @@
+"""Pure metric functions on landmark tracks (pixels) — shared by evaluations and benchmarks."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def interocular_distance(landmarks: np.ndarray, left_eye: np.ndarray, right_eye: np.ndarray) -> np.ndarray:
+    """``(...)`` distance between the centres of the two eye contours of landmarks ``(..., L, 2)``, px."""
+    return np.linalg.norm(
+        landmarks[..., left_eye, :].mean(-2) - landmarks[..., right_eye, :].mean(-2), axis=-1
+    )
+
+
+def landmark_error(pred: np.ndarray, target: np.ndarray, idx: np.ndarray | None = None) -> np.ndarray:
+    """Per-frame mean distance ``(T,)`` between landmarks ``pred``, ``target`` ``(T, L, 2)``; NaN-aware."""
+    if idx is not None:
+        pred, target = pred[:, idx], target[:, idx]
+    return np.nanmean(np.linalg.norm(pred - target, axis=-1), axis=-1)
+
+
+def jitter(track: np.ndarray, idx: np.ndarray | None = None) -> np.ndarray:
+    """Per-frame jitter ``(T-2,)``: mean norm of the second temporal difference of landmarks ``(T, L, 2)``.
+
+    A still point scores 0; constant-velocity motion scores 0; noise of standard deviation ``s`` per axis
+    scores about ``sqrt(6 * 2) * s * sqrt(pi) / 2`` (mean of a Rayleigh of scale ``sqrt(6) s``).
+    """
+    if idx is not None:
+        track = track[:, idx]
+    d2 = track[2:] - 2 * track[1:-1] + track[:-2]
+    return np.nanmean(np.linalg.norm(d2, axis=-1), axis=-1)
+
+
+def inner_lip_gap(landmarks: np.ndarray, upper: int = 13, lower: int = 14) -> np.ndarray:
+    """``(T,)`` distance between the inner-lip midpoints (mediapipe landmarks 13 and 14), px."""
+    return np.linalg.norm(landmarks[:, upper] - landmarks[:, lower], axis=-1)
