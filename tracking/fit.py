@@ -286,8 +286,8 @@ def solve_sequence(
         count[0] = count[-1] = 1.0
     else:
         count = torch.zeros(1, dtype=torch.float64)
-    diag = h + torch.diag_embed(count[:, None] * lam + 1e-9)
-    step = solve_block_tridiagonal(diag.numpy(), -lam.numpy(), -g.numpy())
+    h.diagonal(dim1=1, dim2=2).add_(count[:, None] * lam + 1e-9)  # in place: bounded memory on long videos
+    step = solve_block_tridiagonal(h.numpy(), -lam.numpy(), -g.numpy())
     return apply_step(p, torch.from_numpy(step).to(obs.dtype))
 
 

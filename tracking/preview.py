@@ -37,7 +37,8 @@ def draw_overlay(
     import cv2
 
     out = frame.copy()
-    thick = max(1, round(max(frame.shape[:2]) / 700))
+    face_px = float(np.ptp(uv[:, 0])) if np.isfinite(uv).all() else max(frame.shape[:2]) / 3
+    thick = max(1, round(face_px / 250))  # lines scale with the face, not the frame
     shift = 4
     pts = np.round(uv * (1 << shift)).astype(np.int32)
     segs = pts[edges]
