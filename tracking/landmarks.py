@@ -6,6 +6,7 @@ The model file ``face_landmarker.task`` is not part of mediapipe's wheel; it shi
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import importlib.resources
 import logging
@@ -49,6 +50,23 @@ def read_task_member(name: str) -> bytes:
         return zf.read(name)
 
 
+@contextlib.contextmanager
+def _native_stderr_silenced():
+    """Silence C++ log lines (glog/TFLite start-up chatter) written straight to file descriptor 2."""
+    try:
+        saved = os.dup(2)
+    except OSError:  # no real stderr (e.g. embedded interpreter): nothing to silence
+        yield
+        return
+    with open(os.devnull, "wb") as null:
+        os.dup2(null.fileno(), 2)
+        try:
+            yield
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+
+
 @dataclass(frozen=True)
 class FrameLandmarks:
     """Detection result for one frame.
@@ -88,8 +106,10 @@ class LandmarkDetector:
             output_face_blendshapes=True,
             output_facial_transformation_matrixes=True,
         )
-        self._landmarker = vision.FaceLandmarker.create_from_options(options)
+        with _native_stderr_silenced():
+            self._landmarker = vision.FaceLandmarker.create_from_options(options)
         self._last_ms = -1
+        self._warm = False
 
     def detect(self, rgb: np.ndarray, time_s: float) -> FrameLandmarks | None:
         """Detect the face in one RGB uint8 ``(H, W, 3)`` frame shown at ``time_s`` seconds."""
@@ -100,7 +120,12 @@ class LandmarkDetector:
         ms = max(int(round(time_s * 1000.0)), self._last_ms + 1)
         self._last_ms = ms
         image = mp.Image(image_format=mp.ImageFormat.SRGB, data=np.ascontiguousarray(rgb))
-        result = self._landmarker.detect_for_video(image, ms)
+        if self._warm:
+            result = self._landmarker.detect_for_video(image, ms)
+        else:  # the first inference logs graph set-up warnings natively
+            with _native_stderr_silenced():
+                result = self._landmarker.detect_for_video(image, ms)
+            self._warm = True
         if not result.face_landmarks:
             return None
         h, w = rgb.shape[:2]
