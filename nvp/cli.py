@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import sys
 from pathlib import Path
 
 from nvp import __version__
+
+VIDEO_SUFFIXES = (".mp4", ".mov", ".mkv", ".avi", ".webm", ".m4v")
 
 
 def _cmd_track(args: argparse.Namespace) -> int:
@@ -27,6 +30,48 @@ def _cmd_track(args: argparse.Namespace) -> int:
     if args.preview:
         write_preview(args.video, seq, args.preview, progress=not args.quiet)
         print(f"preview → {args.preview}")
+    return 0
+
+
+def _cmd_train_audio2exp(args: argparse.Namespace) -> int:
+    from nvp.corpus import load_sample
+    from nvp.errors import NvpError
+    from nvp.face_model import default_face_model
+    from nvp.train_audio2exp import TrainConfig, train
+
+    videos = sorted(p for p in Path(args.corpus).iterdir() if p.suffix.lower() in VIDEO_SUFFIXES)
+    if not videos:
+        raise NvpError(f"no videos ({', '.join(VIDEO_SUFFIXES)}) in {args.corpus}")
+    val_names = set(args.val or [])
+    unknown = val_names - {v.name for v in videos}
+    if unknown:
+        raise NvpError(f"validation videos not in the corpus: {', '.join(sorted(unknown))}")
+    if not val_names:
+        val_names = {v.name for v in videos[:: max(len(videos) // 5, 1)][:5]}
+    exclude = set(args.exclude or [])
+    cache = Path(args.cache) if args.cache else Path(args.output) / "cache"
+    samples = []
+    for v in videos:
+        if v.name in exclude:
+            continue
+        try:
+            samples.append(load_sample(v, cache, args.features, progress=not args.quiet))
+        except NvpError as e:
+            print(f"skipping {v.name}: {e}", file=sys.stderr)
+    train_set = [s for s in samples if s.name not in val_names]
+    val_set = [s for s in samples if s.name in val_names]
+    cfg = TrainConfig(kind=args.features, steps=args.steps, seed=args.seed)
+    result = train(train_set, val_set, default_face_model(), cfg, Path(args.output), progress=not args.quiet)
+    split = {
+        "train": [s.name for s in train_set],
+        "validation": [s.name for s in val_set],
+        "excluded": sorted(exclude),
+    }
+    (Path(args.output) / "split.json").write_text(json.dumps(split, indent=2) + "\n")
+    print(
+        f"best validation mouth error {result['best_mouth_error_iod']:.4f} IOD → "
+        f"{Path(args.output) / 'best.json'}"
+    )
     return 0
 
 
@@ -61,6 +106,19 @@ def build_parser() -> argparse.ArgumentParser:
         "--save-detections", action="store_true", help="also keep the raw landmarks (detections.npz)"
     )
     p.set_defaults(func=_cmd_track)
+
+    p = sub.add_parser("train-audio2exp", help="train the generic Audio2ExpressionNet on a folder of videos")
+    p.add_argument("corpus", type=Path, help="folder of talking-head videos with audio")
+    p.add_argument("-o", "--output", type=Path, required=True, help="output folder (checkpoints, best model)")
+    p.add_argument("--features", choices=("phonemes", "mel"), default="phonemes", help="speech features")
+    p.add_argument(
+        "--val", nargs="*", help="file names of validation videos (default: 5 spread over the list)"
+    )
+    p.add_argument("--exclude", nargs="*", help="file names to leave out entirely")
+    p.add_argument("--steps", type=int, default=12000, help="optimisation steps")
+    p.add_argument("--seed", type=int, default=0, help="random seed")
+    p.add_argument("--cache", type=Path, help="tracking/feature cache (default: OUTPUT/cache)")
+    p.set_defaults(func=_cmd_train_audio2exp)
 
     p = sub.add_parser("demo", help="make the shipped demo clip and run the pipeline on it")
     p.add_argument("-o", "--output", type=Path, default=Path("nvp-demo"), help="output directory")

@@ -34,3 +34,17 @@ def jitter(track: np.ndarray, idx: np.ndarray | None = None) -> np.ndarray:
 def inner_lip_gap(landmarks: np.ndarray, upper: int = 13, lower: int = 14) -> np.ndarray:
     """``(T,)`` distance between the inner-lip midpoints (mediapipe landmarks 13 and 14), px."""
     return np.linalg.norm(landmarks[:, upper] - landmarks[:, lower], axis=-1)
+
+
+def closure_f1(pred_gap: np.ndarray, true_gap: np.ndarray, threshold: float) -> dict[str, float]:
+    """Lip-closure precision, recall and F1: a frame is closed when its inner-lip gap is below ``threshold``.
+
+    Args:
+        pred_gap, true_gap: ``(T,)`` inner-lip gaps (any unit, the same for both and the threshold).
+    """
+    p, t = pred_gap < threshold, true_gap < threshold
+    tp = float((p & t).sum())
+    precision = tp / p.sum() if p.sum() else 0.0
+    recall = tp / t.sum() if t.sum() else 0.0
+    f1 = 2 * precision * recall / (precision + recall) if precision + recall else 0.0
+    return {"closure_precision": precision, "closure_recall": recall, "closure_f1": f1}

@@ -1,0 +1,310 @@
+"""Training and evaluation of the generic Audio2ExpressionNet with per-video person maps.
+
+Training (Thies et al. 2020, Sec. 3.1): every training video gets its own person map ``(K_exp × A)`` (plus
+a bias), trained jointly with the generic network; the loss is in vertex space (mouth 10×) with the
+temporal term (λ = 20); Adam, lr 1e-4. Each batch item is three consecutive frames of one video, each
+filtered over its 8 surrounding per-frame predictions.
+
+Evaluation protocol for a person the network has never seen: solve the person map in closed form on the
+first part of their video, predict the rest from audio alone, compare with tracking.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from nvp.audio2exp import Audio2ExpConfig, Audio2ExpressionNet, PersonMap, VertexMetric, solve_person_map
+from nvp.corpus import VideoSample
+from nvp.errors import FormatError
+from nvp.face_model import FaceModel
+from nvp.geometry import project
+from nvp.metrics import closure_f1, interocular_distance
+
+log = logging.getLogger(__name__)
+FORMAT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Corpus training settings."""
+
+    kind: str = "phonemes"
+    """Speech features: 'phonemes' (hama posteriors) or 'mel'."""
+    steps: int = 12000
+    """Optimisation steps."""
+    batch: int = 64
+    """Items per step (each item: three consecutive frames of one video)."""
+    lr: float = 1e-4
+    """Adam learning rate (the paper's value)."""
+    map_lr: float = 1e-3
+    """Adam learning rate of the per-video person maps."""
+    weight_decay: float = 1e-5
+    """Adam weight decay on the generic network."""
+    mouth_weight: float = 10.0
+    """Weight of mouth-region vertices in the vertex-space loss."""
+    temporal_weight: float = 20.0
+    """λ of the temporal (forward/backward/central difference) term."""
+    ridge: float = 10.0
+    """Ridge regularisation of closed-form person maps."""
+    train_fraction: float = 0.8
+    """Part of each validation video used to solve its person map; the rest is predicted."""
+    val_every: int = 1000
+    """Steps between validations (and checkpoints)."""
+    seed: int = 0
+    """Random seed (weights, batches)."""
+    net: Audio2ExpConfig = field(default_factory=Audio2ExpConfig)
+    """Network sizes."""
+
+
+def _filter_indices(t: np.ndarray, num_frames: int, f: int) -> np.ndarray:
+    """Per-frame window indices ``(B, 2 + F)`` needed to filter frames t-1, t, t+1 (edge-clamped)."""
+    offs = np.arange(-1 - f // 2, 1 + f - f // 2)
+    return np.clip(t[:, None] + offs[None], 0, num_frames - 1)
+
+
+def _predict_triplets(net: Audio2ExpressionNet, windows: torch.Tensor) -> torch.Tensor:
+    """Audio-expressions ``(B, 3, A)`` of frames t-1, t, t+1 from their windows ``(B, 2 + F, W, D)``."""
+    b, n = windows.shape[:2]
+    f = net.cfg.filter_window
+    raw = net.per_frame(windows.flatten(0, 1)).view(b, n, -1)
+    outs = [net.filter(raw[:, k : k + f])[0] for k in range(3)]
+    return torch.stack(outs, 1)
+
+
+def audio_expressions(net: Audio2ExpressionNet, windows: np.ndarray, use_filter: bool = True) -> np.ndarray:
+    """Generic-net outputs ``(T, A)`` for feature windows ``(T, W, D)``."""
+    net.eval()
+    with torch.no_grad():
+        return net.sequence(torch.from_numpy(windows), use_filter=use_filter).numpy()
+
+
+def evaluate_person(
+    sample: VideoSample,
+    model: FaceModel,
+    audio_exp: np.ndarray | None,
+    train_fraction: float = 0.8,
+    ridge: float = 10.0,
+) -> dict[str, float]:
+    """Person-specific evaluation on the held-out tail of one video.
+
+    The person map is solved on the first ``train_fraction`` of the frames; the tail is predicted. With
+    ``audio_exp=None`` the prediction is the person's mean expression (baseline).
+
+    Returns mouth landmark error (projected lip vertices of predicted vs tracked mesh under the tracked
+    pose, / interocular distance), lip vertex error (mm, object space) and lip-closure precision/recall/F1
+    (closed: inner-lip gap below the person's closed level, ``min + 0.15 (p95 - min)`` of the tracked gap
+    on the training part).
+    """
+    seq = sample.tracked
+    t_split = int(round(seq.num_frames * train_fraction))
+    tr = np.flatnonzero(seq.valid[:t_split])
+    te = t_split + np.flatnonzero(seq.valid[t_split:])
+    if len(tr) < 10 or len(te) < 5:
+        raise ValueError(f"{sample.name}: too few valid frames to evaluate ({len(tr)} train, {len(te)} test)")
+    if audio_exp is None:
+        pred = np.broadcast_to(seq.expression[tr].mean(0), (len(te), model.num_exp))
+    else:
+        pmap = solve_person_map(audio_exp[tr], seq.expression[tr], ridge)
+        pred = pmap.apply(audio_exp[te])
+    lips = np.flatnonzero(model.vertex_regions["lips"])
+    v_pred = model.vertices(seq.identity, pred)
+    v_true = model.vertices(seq.identity, seq.expression[te])
+    lip_mm = 10 * np.linalg.norm(v_pred[:, lips] - v_true[:, lips], axis=-1).mean()
+
+    def px(v):
+        cam = np.einsum("tij,tvj->tvi", seq.rotation[te], v) + seq.translation[te, None]
+        return project(torch.from_numpy(cam), torch.tensor(seq.focal), torch.from_numpy(seq.center)).numpy()
+
+    g = model.landmark_groups
+    iod = interocular_distance(seq.landmarks[te], g["left_eye"], g["right_eye"])
+    iod = np.where(np.isfinite(iod), iod, np.nanmedian(iod))
+    mouth = (np.linalg.norm(px(v_pred[:, lips]) - px(v_true[:, lips]), axis=-1).mean(-1) / iod).mean()
+    gap_true_all = np.linalg.norm(
+        model.vertices(seq.identity, seq.expression)[:, 13]
+        - model.vertices(seq.identity, seq.expression)[:, 14],
+        axis=-1,
+    )
+    lo, hi = gap_true_all[tr].min(), np.percentile(gap_true_all[tr], 95)
+    thr = lo + 0.15 * (hi - lo)
+    gap_pred = np.linalg.norm(v_pred[:, 13] - v_pred[:, 14], axis=-1)
+    out = {"mouth_error_iod": float(mouth), "lip_vertex_error_mm": float(lip_mm)}
+    out.update(closure_f1(gap_pred, gap_true_all[te], thr))
+    out["test_frames"] = int(len(te))
+    return out
+
+
+def _summary(rows: list[dict[str, float]]) -> dict[str, float]:
+    keys = ("mouth_error_iod", "lip_vertex_error_mm", "closure_f1")
+    return {k: float(np.mean([r[k] for r in rows])) for k in keys}
+
+
+def save_net(net: Audio2ExpressionNet, out: Path, manifest: dict) -> Path:
+    """Write ``<out>.npz`` (weights) and ``<out>.json`` (format, config, provenance); atomic per file."""
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    arrays = {k: v.detach().numpy() for k, v in net.state_dict().items()}
+    tmp = out.with_name(f".{out.name}.tmp.npz")
+    np.savez(tmp, **arrays)
+    os.replace(tmp, out.with_suffix(".npz"))
+    manifest = {
+        "format": "nvp.audio2exp",
+        "version": FORMAT_VERSION,
+        "weights": out.with_suffix(".npz").name,
+        "net": asdict(net.cfg),
+        **manifest,
+    }
+    tmpj = out.with_name(f".{out.name}.tmp.json")
+    tmpj.write_text(json.dumps(manifest, indent=2) + "\n")
+    os.replace(tmpj, out.with_suffix(".json"))
+    return out.with_suffix(".json")
+
+
+def load_net(path: Path) -> tuple[Audio2ExpressionNet, dict]:
+    """Load a saved network from its ``.json`` manifest (or ``.npz``)."""
+    js = Path(path).with_suffix(".json")
+    try:
+        m = json.loads(js.read_text())
+    except (OSError, ValueError) as e:
+        raise FormatError(f"cannot read Audio2Expression manifest {js}: {e}") from e
+    if m.get("format") != "nvp.audio2exp" or m.get("version") != FORMAT_VERSION:
+        raise FormatError(
+            f"{js}: expected nvp.audio2exp version {FORMAT_VERSION}, found {m.get('format')} "
+            f"version {m.get('version')}"
+        )
+    cfg = m["net"]
+    cfg["conv_channels"] = tuple(cfg["conv_channels"])
+    net = Audio2ExpressionNet(Audio2ExpConfig(**cfg))
+    with np.load(js.parent / m["weights"]) as z:
+        net.load_state_dict({k: torch.from_numpy(z[k]) for k in z.files})
+    net.eval()
+    return net, m
+
+
+def train(
+    train_set: list[VideoSample],
+    val_set: list[VideoSample],
+    model: FaceModel,
+    cfg: TrainConfig,
+    out_dir: Path,
+    progress: bool = True,
+) -> dict:
+    """Train the generic network and the training videos' person maps; resumable from ``out_dir``.
+
+    Writes ``checkpoint.pt`` every ``val_every`` steps (network, maps, optimiser, step, RNG state) and
+    ``best.{npz,json}`` whenever the mean validation mouth error improves. Returns the training log.
+    """
+    out_dir.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(cfg.seed)
+    net_cfg = cfg.net
+    if net_cfg.feature_dim != train_set[0].windows.shape[2]:
+        net_cfg = Audio2ExpConfig(**{**asdict(net_cfg), "feature_dim": int(train_set[0].windows.shape[2])})
+    net = Audio2ExpressionNet(net_cfg)
+    k, a = model.num_exp, net_cfg.audio_exp_dim
+    maps = torch.nn.Parameter(torch.zeros(len(train_set), k, a))
+    bias = torch.nn.Parameter(torch.from_numpy(np.stack([s.expression[s.valid].mean(0) for s in train_set])))
+    torch.nn.init.normal_(maps, std=0.1)
+    opt = torch.optim.Adam(
+        [
+            {"params": net.parameters(), "lr": cfg.lr, "weight_decay": cfg.weight_decay},
+            {"params": [maps, bias], "lr": cfg.map_lr},
+        ]
+    )
+    metric = VertexMetric(model.exp_basis, model.vertex_regions["mouth"], cfg.mouth_weight)
+    windows = [torch.from_numpy(s.windows) for s in train_set]
+    targets = [torch.from_numpy(s.expression) for s in train_set]
+    # items: (video, t) with frames t-1, t, t+1 valid
+    items = []
+    for v, s in enumerate(train_set):
+        ok = s.valid.copy()
+        ok3 = np.zeros_like(ok)
+        ok3[1:-1] = ok[:-2] & ok[1:-1] & ok[2:]
+        items += [(v, t) for t in np.flatnonzero(ok3)]
+    items = np.asarray(items)
+    log_rows: list[dict] = []
+    step, best = 0, float("inf")
+    ckpt = out_dir / "checkpoint.pt"
+    if ckpt.exists():
+        state = torch.load(ckpt, weights_only=True)
+        net.load_state_dict(state["net"])
+        with torch.no_grad():
+            maps.copy_(state["maps"])
+            bias.copy_(state["bias"])
+        opt.load_state_dict(state["opt"])
+        step, best = int(state["step"]), float(state["best"])
+        log_rows = json.loads((out_dir / "log.json").read_text()) if (out_dir / "log.json").exists() else []
+        log.info("resuming from step %d", step)
+    f = net_cfg.filter_window
+    bar = tqdm(total=cfg.steps, initial=step, desc="train audio2exp", disable=not progress)
+    t0 = time.perf_counter()
+    running = []
+    while step < cfg.steps:
+        net.train()
+        # batches depend only on (seed, step), so a resumed run continues exactly like an uninterrupted one
+        pick = items[np.random.default_rng([cfg.seed, step]).integers(0, len(items), cfg.batch)]
+        wins, tgts, vids = [], [], []
+        for v, t in pick:
+            idx = _filter_indices(np.array([t]), len(windows[v]), f)[0]
+            wins.append(windows[v][idx])
+            tgts.append(targets[v][t - 1 : t + 2])
+            vids.append(v)
+        ae = _predict_triplets(net, torch.stack(wins))  # (B, 3, A)
+        vids_t = torch.as_tensor(vids)
+        pred = torch.einsum("bka,bta->btk", maps[vids_t], ae) + bias[vids_t][:, None]
+        loss = metric.loss(pred, torch.stack(tgts), cfg.temporal_weight)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        step += 1
+        running.append(loss.item())
+        bar.update(1)
+        if step % cfg.val_every == 0 or step == cfg.steps:
+            rows = [
+                evaluate_person(s, model, audio_expressions(net, s.windows), cfg.train_fraction, cfg.ridge)
+                for s in val_set
+            ]
+            summary = _summary(rows)
+            entry = {
+                "step": step,
+                "train_loss": float(np.mean(running)),
+                **summary,
+                "seconds": round(time.perf_counter() - t0, 1),
+            }
+            running = []
+            log_rows.append(entry)
+            bar.set_postfix(loss=f"{entry['train_loss']:.4f}", val_mouth=f"{summary['mouth_error_iod']:.4f}")
+            if summary["mouth_error_iod"] < best:
+                best = summary["mouth_error_iod"]
+                save_net(
+                    net, out_dir / "best", {"step": step, "validation": summary, "feature_kind": cfg.kind}
+                )
+            tmp = out_dir / ".checkpoint.tmp"
+            torch.save(
+                {
+                    "net": net.state_dict(),
+                    "maps": maps.detach(),
+                    "bias": bias.detach(),
+                    "opt": opt.state_dict(),
+                    "step": step,
+                    "best": best,
+                },
+                tmp,
+            )
+            os.replace(tmp, ckpt)
+            (out_dir / "log.json").write_text(json.dumps(log_rows, indent=2) + "\n")
+    bar.close()
+    return {"log": log_rows, "best_mouth_error_iod": best}
+
+
+def person_map_from_sample(net: Audio2ExpressionNet, sample: VideoSample, ridge: float = 10.0) -> PersonMap:
+    """Closed-form person map from a tracked video (all valid frames)."""
+    ae = audio_expressions(net, sample.windows)
+    return solve_person_map(ae[sample.valid], sample.expression[sample.valid], ridge)

@@ -1,0 +1,160 @@
+"""Audio2ExpressionNet, vertex-space loss, closed-form person maps, training with resume."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from nvp.audio2exp import (
+    Audio2ExpConfig,
+    Audio2ExpressionNet,
+    ExpressionFilter,
+    PerFrameNet,
+    VertexMetric,
+    solve_person_map,
+)
+from nvp.corpus import VideoSample
+from nvp.tracked import TrackedSequence
+from nvp.train_audio2exp import TrainConfig, evaluate_person, load_net, save_net, train
+
+CFG = Audio2ExpConfig(feature_dim=12)
+
+
+def test_per_frame_net_shapes_and_range():
+    net = PerFrameNet(CFG)
+    out = net(torch.randn(5, 16, 12))
+    assert out.shape == (5, 32)
+    assert out.abs().max() <= 1
+    with pytest.raises(ValueError, match="feature windows"):
+        net(torch.randn(16, 12))
+
+
+def test_filter_weights_are_a_convex_combination():
+    filt = ExpressionFilter(CFG)
+    preds = torch.randn(4, 8, 32)
+    out, w = filt(preds)
+    assert w.shape == (4, 8)
+    torch.testing.assert_close(w.sum(-1), torch.ones(4))
+    # identical predictions pass through unchanged
+    same = torch.randn(4, 1, 32).expand(4, 8, 32)
+    torch.testing.assert_close(filt(same)[0], same[:, 0])
+
+
+def test_sequence_is_aligned_and_batch_independent():
+    net = Audio2ExpressionNet(CFG).eval()
+    w = torch.randn(30, 16, 12)
+    with torch.no_grad():
+        a = net.sequence(w)
+        b = net.sequence(w, batch=7)
+        raw = net.sequence(w, use_filter=False)
+    assert a.shape == raw.shape == (30, 32)
+    torch.testing.assert_close(a, b)
+
+
+def test_parameter_count_is_small():
+    net = Audio2ExpressionNet(Audio2ExpConfig())
+    assert sum(p.numel() for p in net.parameters()) < 200_000
+
+
+def test_vertex_metric_matches_explicit_vertices(face_model):
+    metric = VertexMetric(face_model.exp_basis, face_model.vertex_regions["mouth"], 10.0)
+    d = torch.randn(3, face_model.num_exp)
+    verts = np.einsum("tk,kvc->tvc", d.numpy(), face_model.exp_basis)
+    w = np.where(face_model.vertex_regions["mouth"], 10.0, 1.0)
+    explicit = (w * (verts**2).sum(-1)).sum(-1) / w.sum()
+    np.testing.assert_allclose(metric.sq(d).numpy(), explicit, rtol=1e-4)
+
+
+def test_temporal_term_penalises_jitter_not_offsets(face_model):
+    metric = VertexMetric(face_model.exp_basis, face_model.vertex_regions["mouth"])
+    target = torch.zeros(2, 3, face_model.num_exp)
+    offset = torch.ones(2, 3, face_model.num_exp) * 0.1
+    jitter = offset.clone()
+    jitter[:, 1] *= -1
+    assert float(metric.loss(offset, target)) == pytest.approx(
+        float(metric.loss(offset, target, 0.0)), abs=1e-4
+    )
+    assert metric.loss(jitter, target) > 5 * metric.loss(offset, target)
+
+
+def test_person_map_recovers_a_known_linear_map():
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(500, 32))
+    m = rng.normal(size=(20, 32))
+    b = rng.normal(size=20)
+    d = a @ m.T + b + rng.normal(0, 0.01, (500, 20))
+    pm = solve_person_map(a, d, ridge=1e-3)
+    np.testing.assert_allclose(pm.matrix, m, atol=0.01)
+    np.testing.assert_allclose(pm.bias, b, atol=0.01)
+    with pytest.raises(ValueError, match="frames"):
+        solve_person_map(a[:10], d[:11])
+
+
+def fake_sample(face_model, name, seed, frames=120, dim=12):
+    """Feature windows whose first channels drive the expression linearly (a learnable toy 'speech')."""
+    rng = np.random.default_rng(seed)
+    signal = np.cumsum(rng.normal(size=(frames + 16, dim)), 0) * 0.2
+    windows = np.stack([signal[t : t + 16] for t in range(frames)]).astype(np.float32)
+    mix = rng.normal(size=(face_model.num_exp, dim)) * 0.3
+    expr = (np.tanh(windows[:, 8]) @ mix.T).astype(np.float32)
+    eye = np.tile(np.eye(3, dtype=np.float32), (frames, 1, 1))
+    lm = np.zeros((frames, 468, 2), np.float32)
+    lm[:, face_model.landmark_groups["left_eye"], 0] = 60
+    lm[:, face_model.landmark_groups["right_eye"], 0] = 0
+    seq = TrackedSequence(
+        fps=25.0,
+        width=256,
+        height=256,
+        focal=1000.0,
+        center=np.array([128, 128], np.float32),
+        identity=np.zeros(face_model.num_id, np.float32),
+        rotation=eye,
+        translation=np.tile(np.array([0, 0, 60], np.float32), (frames, 1)),
+        expression=expr,
+        landmarks=lm,
+        valid=np.ones(frames, bool),
+        fit_error=np.zeros(frames, np.float32),
+        face_model_sha256=face_model.sha256,
+    )
+    return VideoSample(name=name, windows=windows, tracked=seq)
+
+
+def test_mean_expression_baseline_and_perfect_prediction(face_model):
+    s = fake_sample(face_model, "a", 0)
+    base = evaluate_person(s, face_model, None)
+    assert base["mouth_error_iod"] > 0
+    # an "audio-expression" equal to the expression itself is mapped perfectly
+    perfect = evaluate_person(s, face_model, s.expression[:, :32].copy(), ridge=1e-6)
+    assert perfect["mouth_error_iod"] < base["mouth_error_iod"]
+
+
+def test_training_learns_and_resumes_exactly(face_model, tmp_path):
+    train_set = [fake_sample(face_model, f"v{i}", i) for i in range(3)]
+    val_set = [fake_sample(face_model, "val", 9)]
+    cfg = TrainConfig(steps=40, batch=16, lr=3e-3, val_every=20, net=CFG)
+    straight = train(train_set, val_set, face_model, cfg, tmp_path / "a", progress=False)
+    assert straight["log"][-1]["train_loss"] < straight["log"][0]["train_loss"] * 1.5
+    first = train(
+        train_set, val_set, face_model, dataclasses.replace(cfg, steps=20), tmp_path / "b", progress=False
+    )
+    resumed = train(train_set, val_set, face_model, cfg, tmp_path / "b", progress=False)
+    assert [r["step"] for r in resumed["log"]] == [20, 40]
+    assert resumed["log"][0] == first["log"][0]  # the first half was not redone
+    # same batches and optimiser state: equal up to float rounding amplified over 20 steps
+    assert resumed["log"][-1]["train_loss"] == pytest.approx(straight["log"][-1]["train_loss"], rel=1e-2)
+    assert torch.load(tmp_path / "b" / "checkpoint.pt", weights_only=True)["step"] == 40
+    net, manifest = load_net(tmp_path / "a" / "best.json")
+    assert manifest["feature_kind"] == "phonemes" and net.cfg.feature_dim == 12
+
+
+def test_save_load_round_trip(tmp_path):
+    net = Audio2ExpressionNet(CFG)
+    save_net(net, tmp_path / "m", {"note": 1})
+    back, m = load_net(tmp_path / "m.json")
+    x = torch.randn(20, 16, 12)
+    with torch.no_grad():
+        torch.testing.assert_close(back.sequence(x), net.eval().sequence(x))
+    assert m["note"] == 1
