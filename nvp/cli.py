@@ -75,6 +75,53 @@ def _cmd_train_audio2exp(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_person_map(args: argparse.Namespace) -> int:
+    from nvp.corpus import load_sample
+    from nvp.person import PersonStyle, default_audio2exp
+    from nvp.train_audio2exp import person_map_from_sample
+
+    net, manifest = default_audio2exp(args.features)
+    cache = Path(args.cache) if args.cache else Path(args.output).parent / ".nvp-cache"
+    sample = load_sample(Path(args.video), cache, args.features, progress=not args.quiet)
+    pmap = person_map_from_sample(net, sample)
+    style = PersonStyle(
+        pmap, args.features, manifest["sha256"], {"video": str(args.video), "frames": int(sample.valid.sum())}
+    )
+    js = style.save(Path(args.output))
+    print(f"person map from {int(sample.valid.sum())} frames → {js}")
+    return 0
+
+
+def _cmd_predict(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from nvp.errors import NvpError
+    from nvp.face_model import default_face_model
+    from nvp.media import read_audio
+    from nvp.person import PersonStyle, default_audio2exp, predict_expressions
+
+    style = PersonStyle.load(Path(args.style))
+    net, manifest = default_audio2exp(style.feature_kind)
+    if manifest["sha256"] != style.audio2exp_sha256:
+        raise NvpError(f"{args.style} was made with another Audio2ExpressionNet; rebuild it (nvp person-map)")
+    audio = read_audio(args.audio, 16000)
+    expr = predict_expressions(audio, 16000, args.fps, style, net)
+    out = {"expression": expr.astype(np.float32), "fps": np.float32(args.fps)}
+    if args.mesh:
+        from nvp.tracked import TrackedSequence
+
+        seq = TrackedSequence.load(Path(args.mesh))
+        model = default_face_model()
+        out["vertices"] = model.vertices(seq.identity, expr).astype(np.float32)
+        out["triangles"] = model.triangles
+    path = Path(args.output)
+    tmp = path.with_name(f".{path.stem}.tmp.npz")
+    np.savez_compressed(tmp, **out)
+    tmp.replace(path)
+    print(f"{len(expr)} frames of expressions at {args.fps} fps → {path}")
+    return 0
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from nvp.demo import run_demo
 
@@ -119,6 +166,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="random seed")
     p.add_argument("--cache", type=Path, help="tracking/feature cache (default: OUTPUT/cache)")
     p.set_defaults(func=_cmd_train_audio2exp)
+
+    p = sub.add_parser("person-map", help="learn a person's talking style (closed form) from their video")
+    p.add_argument("video", type=Path, help="the person talking (video with audio)")
+    p.add_argument("-o", "--output", type=Path, required=True, help="output person map (.npz + .json)")
+    p.add_argument("--features", choices=("phonemes", "mel"), default="phonemes", help="speech features")
+    p.add_argument("--cache", type=Path, help="tracking/feature cache folder")
+    p.set_defaults(func=_cmd_person_map)
+
+    p = sub.add_parser("predict", help="predict a person's expressions (and mesh) for new audio")
+    p.add_argument("audio", type=Path, help="speech (wav, flac, mp3, m4a, or a video's audio track)")
+    p.add_argument("--style", type=Path, required=True, help="person map from nvp person-map")
+    p.add_argument("--fps", type=float, default=25.0, help="output frame rate")
+    p.add_argument("--mesh", type=Path, metavar="TRACK_DIR", help="also export vertices with this identity")
+    p.add_argument("-o", "--output", type=Path, required=True, help="output .npz (expression, vertices)")
+    p.set_defaults(func=_cmd_predict)
 
     p = sub.add_parser("demo", help="make the shipped demo clip and run the pipeline on it")
     p.add_argument("-o", "--output", type=Path, default=Path("nvp-demo"), help="output directory")

@@ -11,6 +11,7 @@ first part of their video, predict the rest from audio alone, compare with track
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import os
@@ -183,8 +184,13 @@ def load_net(path: Path) -> tuple[Audio2ExpressionNet, dict]:
     cfg = m["net"]
     cfg["conv_channels"] = tuple(cfg["conv_channels"])
     net = Audio2ExpressionNet(Audio2ExpConfig(**cfg))
-    with np.load(js.parent / m["weights"]) as z:
-        net.load_state_dict({k: torch.from_numpy(z[k]) for k in z.files})
+    weights = js.parent / m["weights"]
+    try:
+        with np.load(weights) as z:
+            net.load_state_dict({k: torch.from_numpy(z[k]) for k in z.files})
+    except (OSError, ValueError, RuntimeError) as e:
+        raise FormatError(f"cannot load Audio2Expression weights {weights}: {e}") from e
+    m["sha256"] = hashlib.sha256(weights.read_bytes()).hexdigest()
     net.eval()
     return net, m
 

@@ -1,0 +1,611 @@
+"""Speech features behind one interface, each carrying its own frame rate, and their alignment to video.
+
+Two kinds of features are produced from mono audio (resampled to 16 kHz, NaN -> 0, clipped to [-1, 1]):
+
+``"phonemes"`` (D = 191, 50 frames/s)
+    Per-frame phoneme log-posteriors of the conformer CTC phoneme recogniser shipped inside the
+    ``hama==1.7.0`` wheel (Apache-2.0; weights ``hama/assets/asr_waveform.hama``, run by its bundled native
+    library, CPU only, single-threaded per call). The 191 classes are hama's decoder vocabulary: an
+    IPA-based multilingual phone set (English-centred, with Korean tense/aspirated stops, tones, diacritics
+    and a few CJK characters), plus ``<pad> <sos> <eos> <unk>``, space, ``<wb>`` (word boundary, index
+    189) and the CTC ``<blank>`` (index 190), which dominates pauses; see :func:`phoneme_labels`. Output
+    frame ``i`` is taken to be centred at sample ``320 * i`` (t = i / 50 s): the model frames a
+    centre-padded STFT with a 160-sample hop and subsamples by 2, giving ``S // 320 + 1`` frames for ``S``
+    samples. CTC posteriors are peaky (a phone "fires" on one or two frames, blank elsewhere), so this
+    time stamp is accurate to about one frame (+-20 ms). Values are natural-log probabilities, floored at
+    :data:`PHONEME_LOG_FLOOR`.
+
+``"mel"`` (D = 80, 100 frames/s)
+    Log-mel spectrogram written here in numpy/scipy: 25 ms periodic-Hann window (400 samples) zero-padded
+    to a 512-point FFT, 10 ms hop (160 samples), frames centred at ``160 * j`` samples (the signal is
+    zero-padded by 200 samples at both ends, so there are ``S // 160 + 1`` frames), power spectrum
+    ``|X|^2 / sum(window^2)``, 80 triangular filters on the Slaney mel scale from 0 to 8 kHz with
+    Slaney area normalisation, natural log of ``max(power, MEL_POWER_FLOOR)``.
+
+Long audio is processed in chunks so that memory beyond the input audio and the output array stays bounded:
+
+* ``mel`` is local (each frame sees 400 samples), so chunks of 30 s that carry the 200 samples of context
+  each frame needs give exactly the whole-file result; a chunk's temporaries are about 20 MB.
+* ``phonemes``: the hama model attends over its whole input (every output frame depends on the whole
+  clip; appending 5 s of silence to a clip moves about 4 % of the frame argmaxes) and accepts at most
+  1500 output frames (29.98 s of audio; longer input is silently truncated). Audio longer than
+  :data:`PHONEME_CHUNK_S` (28 s) is therefore cut into the fewest equal chunks of at most 28 s, evenly
+  spread so that neighbours overlap by at least :data:`PHONEME_OVERLAP_S` (4 s); in each overlap the two
+  chunks' posteriors are cross-faded linearly (mixing probabilities, so every frame stays a distribution).
+  Chunked output is therefore not bit-equal to a single pass: on real 30 s speech clips cut into 10-20 s
+  chunks, 96-99 % of frames keep their argmax class and the mean L1 distance between frame distributions
+  is 0.02-0.08. Up to ``workers`` chunks run at once in threads (the native call releases the GIL), each
+  thread with its own hama session. A 28 s hama call needs about 90 MB of working memory (about 3.2 MB per
+  second of chunk), so peak memory grows by about 90 MB per worker, not with the file length (10-minute
+  file, 2 workers: 441 MB peak RSS of which 167 MB are imports; mel: 269 MB).
+
+Resampling to 16 kHz (``scipy.signal.resample_poly``) is done on the whole input at once; read files with
+:func:`features_from_file` (which decodes straight to 16 kHz) to avoid that copy.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from fractions import Fraction
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from nvp.errors import NvpError
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "DEFAULT_WINDOW_RATE",
+    "FEATURE_KINDS",
+    "MEL_BANDS",
+    "MEL_RATE",
+    "PHONEME_DIM",
+    "PHONEME_RATE",
+    "SAMPLE_RATE",
+    "SPEECH_THRESHOLD_DB",
+    "AudioFeatures",
+    "extract_features",
+    "features_from_file",
+    "frame_windows",
+    "mel_filterbank",
+    "num_video_frames",
+    "phoneme_labels",
+    "rms_envelope_db",
+    "speech_activity",
+]
+
+SAMPLE_RATE = 16000
+"""Sample rate in Hz at which all features are computed."""
+
+FEATURE_KINDS = ("phonemes", "mel")
+
+# ----------------------------------------------------------------------------------------- phonemes
+PHONEME_HOP = 320
+"""Samples per hama output frame at 16 kHz (160-sample STFT hop, subsampled by 2)."""
+PHONEME_RATE = SAMPLE_RATE / PHONEME_HOP
+"""Phoneme posterior frames per second (50 Hz, 20 ms)."""
+PHONEME_DIM = 191
+"""Size of hama's phone set including ``<blank>``, ``<wb>``, space and special tokens."""
+PHONEME_LOG_FLOOR = -30.0
+"""Log-posteriors are clamped to ``>= -30`` (probability ~1e-13): below that the values only reflect
+numerical noise and context-dependent drift of classes that are far from being recognised."""
+PHONEME_MAX_FRAMES = 1500
+"""hama's positional limit: at most 1500 output frames (29.98 s) per call; longer input is truncated."""
+PHONEME_CHUNK_S = 28.0
+"""Default chunk length in seconds for phoneme extraction (below the 29.98 s limit)."""
+PHONEME_OVERLAP_S = 4.0
+"""Overlap in seconds between consecutive phoneme chunks, cross-faded linearly."""
+
+# ---------------------------------------------------------------------------------------------- mel
+MEL_BANDS = 80
+MEL_WIN = 400
+"""Analysis window in samples (25 ms)."""
+MEL_HOP = 160
+"""Hop in samples (10 ms)."""
+MEL_NFFT = 512
+MEL_RATE = SAMPLE_RATE / MEL_HOP
+"""Mel frames per second (100 Hz)."""
+MEL_POWER_FLOOR = 1e-10
+"""Power floor before the log: silence gives ``log(1e-10) = -23.03`` in every band."""
+MEL_CHUNK_S = 30.0
+"""Default chunk length in seconds for mel extraction (the result does not depend on it)."""
+
+# ------------------------------------------------------------------------------------ windows, speech
+DEFAULT_WINDOW_RATE = 50.0
+"""Default spacing of the samples inside a per-frame window, in samples per second: 16 samples at 50 Hz
+span 320 ms (as with the DeepSpeech features of Neural Voice Puppetry) whatever the feature rate."""
+SPEECH_THRESHOLD_DB = -45.0
+"""RMS level in dBFS above which a 20 ms block counts as active. On the real speech clips in
+``../shared/data/audio`` the 90th-percentile block level is between -35 and -7 dBFS and pauses sit between
+-120 and -45 dBFS (a few noisy recordings have a floor near -30 dBFS, which is still 'active')."""
+SPEECH_MIN_ACTIVE_S = 0.2
+"""Total active duration in seconds needed for :func:`speech_activity` to report speech."""
+
+
+@dataclass(frozen=True)
+class AudioFeatures:
+    """Speech features on their own time line.
+
+    Feature frame ``n`` describes the audio around time ``n / rate`` seconds (frame centre), measured from
+    the first audio sample.
+    """
+
+    values: np.ndarray
+    """``(N, D)`` float32 features: natural-log phoneme posteriors (D = 191, in [-30, 0]) for
+    ``"phonemes"``; natural-log mel power (D = 80, >= -23.03) for ``"mel"``."""
+    rate: float
+    """Feature frames per second (Hz): 50 for ``"phonemes"``, 100 for ``"mel"``."""
+    kind: str
+    """``"phonemes"`` or ``"mel"``."""
+    duration_s: float
+    """Duration in seconds of the audio the features were computed from (samples / sample rate)."""
+
+    def __post_init__(self) -> None:
+        if self.kind not in FEATURE_KINDS:
+            raise NvpError(f"feature kind must be one of {FEATURE_KINDS}, found {self.kind!r}")
+        if not (isinstance(self.values, np.ndarray) and self.values.ndim == 2):
+            shape = getattr(self.values, "shape", type(self.values).__name__)
+            raise NvpError(f"feature values must be a 2-D array (N, D), found {shape}")
+        if self.values.dtype != np.float32:
+            raise NvpError(f"feature values must be float32, found {self.values.dtype}")
+        if not (math.isfinite(self.rate) and self.rate > 0):
+            raise NvpError(f"feature rate must be a positive number of frames per second, found {self.rate}")
+        if not (math.isfinite(self.duration_s) and self.duration_s >= 0):
+            raise NvpError(
+                f"audio duration must be a non-negative number of seconds, found {self.duration_s}"
+            )
+
+    @property
+    def num_frames(self) -> int:
+        """N, the number of feature frames."""
+        return int(self.values.shape[0])
+
+    @property
+    def dim(self) -> int:
+        """D, the number of feature channels."""
+        return int(self.values.shape[1])
+
+    def times(self) -> np.ndarray:
+        """``(N,)`` float64 centre time of each feature frame in seconds."""
+        return np.arange(self.num_frames, dtype=np.float64) / self.rate
+
+
+# ------------------------------------------------------------------------------------------- helpers
+
+
+def _prepare_audio(audio: np.ndarray, sample_rate: int) -> np.ndarray:
+    """Mono float32 audio at 16 kHz, non-finite samples set to 0 and clipped to [-1, 1]."""
+    arr = np.asarray(audio)
+    if arr.ndim != 1:
+        raise NvpError(f"expected mono audio of shape (S,), found an array of shape {arr.shape}")
+    if not np.issubdtype(arr.dtype, np.floating):
+        raise NvpError(f"expected floating-point audio samples in [-1, 1], found dtype {arr.dtype}")
+    if int(sample_rate) != sample_rate or sample_rate <= 0:
+        raise NvpError(f"expected a positive integer sample rate in Hz, found {sample_rate!r}")
+    if arr.size == 0:
+        raise NvpError("expected at least one audio sample, found empty audio")
+    sample_rate = int(sample_rate)
+    arr = np.nan_to_num(arr.astype(np.float32, copy=False), nan=0.0, posinf=1.0, neginf=-1.0)
+    clipped = np.count_nonzero(np.abs(arr) > 1.0)
+    if clipped:
+        logger.warning("%d audio samples outside [-1, 1] were clipped", clipped)
+    arr = np.clip(arr, -1.0, 1.0)
+    if sample_rate != SAMPLE_RATE:
+        from scipy.signal import resample_poly
+
+        ratio = Fraction(SAMPLE_RATE, sample_rate)
+        arr = resample_poly(arr, ratio.numerator, ratio.denominator).astype(np.float32)
+        arr = np.clip(arr, -1.0, 1.0)  # the anti-aliasing filter can overshoot
+    return np.ascontiguousarray(arr, dtype=np.float32)
+
+
+def num_video_frames(duration_s: float, fps: float) -> int:
+    """Number of video frames at ``fps`` needed to cover ``duration_s`` seconds: ``ceil(duration * fps)``.
+
+    A product within 1e-6 of an integer counts as that integer (20 s at 25 fps is 500 frames, not 501).
+    """
+    x = duration_s * fps
+    return max(0, int(math.ceil(x - 1e-6)))
+
+
+# ------------------------------------------------------------------------------------------------ mel
+
+
+@lru_cache(maxsize=4)
+def mel_filterbank(
+    num_bands: int = MEL_BANDS,
+    n_fft: int = MEL_NFFT,
+    sample_rate: int = SAMPLE_RATE,
+    fmax: float | None = None,
+) -> np.ndarray:
+    """``(num_bands, n_fft // 2 + 1)`` float32 triangular mel filters (Slaney scale and area norm).
+
+    Slaney's scale is linear below 1 kHz (200/3 Hz per mel) and logarithmic above. Filter ``b`` rises from
+    mel point ``b`` to ``b + 1`` and falls to ``b + 2`` (``num_bands + 2`` points evenly spaced from 0 Hz
+    to ``fmax``, default Nyquist), and is scaled by ``2 / (f_{b+2} - f_b)`` so that each band measures a
+    power density. The returned array is read-only.
+    """
+    fmax = sample_rate / 2 if fmax is None else fmax
+    f_sp = 200.0 / 3
+    min_log_hz = 1000.0
+    min_log_mel = min_log_hz / f_sp
+    logstep = math.log(6.4) / 27.0
+
+    def hz_to_mel(f: np.ndarray) -> np.ndarray:
+        f = np.asarray(f, dtype=np.float64)
+        lin = f / f_sp
+        log = min_log_mel + np.log(np.maximum(f, 1e-9) / min_log_hz) / logstep
+        return np.where(f >= min_log_hz, log, lin)
+
+    def mel_to_hz(m: np.ndarray) -> np.ndarray:
+        m = np.asarray(m, dtype=np.float64)
+        return np.where(m >= min_log_mel, min_log_hz * np.exp(logstep * (m - min_log_mel)), f_sp * m)
+
+    edges = mel_to_hz(np.linspace(hz_to_mel(0.0), hz_to_mel(fmax), num_bands + 2))
+    bins = np.linspace(0.0, sample_rate / 2, n_fft // 2 + 1)
+    lower, centre, upper = edges[:-2, None], edges[1:-1, None], edges[2:, None]
+    rising = (bins[None, :] - lower) / (centre - lower)
+    falling = (upper - bins[None, :]) / (upper - centre)
+    fb = np.maximum(0.0, np.minimum(rising, falling)) * (2.0 / (upper - lower))
+    out = fb.astype(np.float32)
+    out.setflags(write=False)
+    return out
+
+
+@lru_cache(maxsize=1)
+def _mel_window() -> np.ndarray:
+    n = np.arange(MEL_WIN)
+    win = (0.5 - 0.5 * np.cos(2 * np.pi * n / MEL_WIN)).astype(np.float32)  # periodic Hann
+    win.setflags(write=False)
+    return win
+
+
+def _mel_frames(audio: np.ndarray, f0: int, f1: int) -> np.ndarray:
+    """Log-mel frames ``f0 .. f1-1`` ``(f1 - f0, 80)`` of 16 kHz audio, as if zero-padded at both ends."""
+    from scipy.fft import rfft
+
+    half = MEL_WIN // 2
+    s0 = f0 * MEL_HOP - half
+    s1 = (f1 - 1) * MEL_HOP + half
+    seg = np.zeros(s1 - s0, dtype=np.float32)
+    a0, a1 = max(s0, 0), min(s1, len(audio))
+    if a1 > a0:
+        seg[a0 - s0 : a1 - s0] = audio[a0:a1]
+    frames = np.lib.stride_tricks.sliding_window_view(seg, MEL_WIN)[::MEL_HOP]
+    win = _mel_window()
+    spec = rfft(frames * win, n=MEL_NFFT, axis=-1)
+    power = (spec.real**2 + spec.imag**2) / np.float32(np.sum(win.astype(np.float64) ** 2))
+    mel = power.astype(np.float32) @ mel_filterbank().T
+    return np.log(np.maximum(mel, MEL_POWER_FLOOR)).astype(np.float32)
+
+
+def _extract_mel(audio: np.ndarray, chunk_s: float) -> np.ndarray:
+    n = len(audio) // MEL_HOP + 1
+    step = max(1, int(round(chunk_s * MEL_RATE)))
+    out = np.empty((n, MEL_BANDS), dtype=np.float32)
+    for f0 in range(0, n, step):
+        f1 = min(n, f0 + step)
+        out[f0:f1] = _mel_frames(audio, f0, f1)
+    return out
+
+
+# ------------------------------------------------------------------------------------------- phonemes
+
+
+def _hama() -> Any:
+    """The hama module (imported on first use: it loads a native library)."""
+    try:
+        import hama
+        from hama import _engine
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        raise NvpError(
+            "phoneme features need the 'hama' package (pip install hama==1.7.0); "
+            f"it could not be imported: {exc}"
+        ) from exc
+    if not _engine.available():  # pragma: no cover - depends on the platform
+        raise NvpError("phoneme features need hama's native library, which is not available on this platform")
+    return hama
+
+
+class _PhonemeRecognizer:
+    """One hama ASR session per thread; call with 16 kHz float32 audio of at most 29.98 s."""
+
+    def __init__(self) -> None:
+        self._local = threading.local()
+
+    def _model(self) -> Any:
+        model = getattr(self._local, "model", None)
+        if model is None:
+            model = _hama().ASRModel()
+            if len(model.decoder_tokens) != PHONEME_DIM:
+                raise NvpError(
+                    f"expected hama's phone set to have {PHONEME_DIM} classes, "
+                    f"found {len(model.decoder_tokens)}"
+                )
+            self._local.model = model
+        return model
+
+    def __call__(self, audio: np.ndarray) -> np.ndarray:
+        """``(len(audio) // 320 + 1, 191)`` float32 log-posteriors (not floored)."""
+        model = self._model()
+        expected = len(audio) // PHONEME_HOP + 1
+        if expected > PHONEME_MAX_FRAMES:
+            raise NvpError(
+                f"expected at most {PHONEME_MAX_FRAMES} frames per hama call, asked for {expected}"
+            )
+        wav = np.ascontiguousarray(audio, dtype=np.float32)[None]
+        log_probs, lengths = model.session.run(
+            ["log_probs", "out_lengths"], {"waveform": wav, "waveform_lengths": np.array([wav.shape[1]])}
+        )
+        n = int(np.asarray(lengths).reshape(-1)[0])
+        if n != expected or log_probs.shape[-1] != PHONEME_DIM:
+            raise NvpError(
+                f"expected hama to return ({expected}, {PHONEME_DIM}) log-posteriors "
+                f"for {len(audio)} samples, "
+                f"found {n} frames of {log_probs.shape[-1]}"
+            )
+        return log_probs[0, :n]
+
+
+@lru_cache(maxsize=1)
+def _recognizer() -> _PhonemeRecognizer:
+    return _PhonemeRecognizer()
+
+
+@lru_cache(maxsize=1)
+def phoneme_labels() -> tuple[str, ...]:
+    """The 191 class names of the ``"phonemes"`` features, in channel order (hama's decoder tokens)."""
+    return tuple(_hama().ASRModel().decoder_tokens)
+
+
+def _phoneme_chunks(n: int, chunk: int, overlap: int) -> list[tuple[int, int]]:
+    """Frame ranges ``[f0, f1)`` covering ``0 .. n-1``: the fewest chunks of at most ``chunk`` frames that
+    share at least ``overlap`` frames with their neighbours, all of one length and evenly spread."""
+    if n <= chunk:
+        return [(0, n)]
+    k = math.ceil((n - overlap) / (chunk - overlap))
+    length = min(chunk, math.ceil((n + (k - 1) * overlap) / k))
+    starts = [round(i * (n - length) / (k - 1)) for i in range(k)]
+    return [(s, s + length) for s in starts]
+
+
+def _crossfade_weights(ranges: list[tuple[int, int]], i: int) -> np.ndarray:
+    """``(f1 - f0,)`` weights of chunk ``i``: 1 inside, linear ramps across the overlaps with neighbours."""
+    f0, f1 = ranges[i]
+    j = np.arange(f1 - f0, dtype=np.float32) + 0.5
+    w = np.ones(f1 - f0, dtype=np.float32)
+    if i > 0:
+        w = np.minimum(w, j / (ranges[i - 1][1] - f0))
+    if i + 1 < len(ranges):
+        w = np.minimum(w, (f1 - f0 - j) / (f1 - ranges[i + 1][0]))
+    return w
+
+
+def _extract_phonemes(audio: np.ndarray, chunk_s: float, workers: int) -> np.ndarray:
+    n = len(audio) // PHONEME_HOP + 1
+    chunk = min(int(round(chunk_s * PHONEME_RATE)), PHONEME_MAX_FRAMES - 1)
+    overlap = min(int(round(PHONEME_OVERLAP_S * PHONEME_RATE)), chunk // 3)
+    if chunk < 3 or (n > chunk and overlap < 1):
+        raise NvpError(f"expected a phoneme chunk length of at least 0.06 s, found {chunk_s} s")
+    recognize = _recognizer()
+    ranges = _phoneme_chunks(n, chunk, overlap)
+    if len(ranges) == 1:
+        return np.maximum(recognize(audio), PHONEME_LOG_FLOOR).astype(np.float32)
+
+    def run(r: tuple[int, int]) -> np.ndarray:
+        f0, f1 = r
+        # samples up to the end of frame f1 - 1's hop: hama returns f1 - f0 (+ 1) frames for them
+        seg = audio[f0 * PHONEME_HOP : min(len(audio), f1 * PHONEME_HOP)]
+        return recognize(seg)[: f1 - f0]
+
+    logger.debug("phonemes: %d frames in %d chunks %s", n, len(ranges), ranges)
+    probs = np.zeros((n, PHONEME_DIM), dtype=np.float32)  # cross-faded probabilities
+    total = np.zeros((n, 1), dtype=np.float32)  # sum of weights per frame
+    workers = max(1, min(workers, len(ranges)))
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        # bounded look-ahead: at most `workers` chunks are in flight or waiting to be merged
+        pending = {i: pool.submit(run, ranges[i]) for i in range(workers)}
+        for i, (f0, f1) in enumerate(ranges):
+            lp = pending.pop(i).result()
+            if i + workers < len(ranges):
+                pending[i + workers] = pool.submit(run, ranges[i + workers])
+            w = _crossfade_weights(ranges, i)[:, None]
+            probs[f0:f1] += np.exp(lp) * w
+            total[f0:f1] += w
+    probs /= total
+    with np.errstate(divide="ignore"):
+        np.log(probs, out=probs)
+    np.maximum(probs, PHONEME_LOG_FLOOR, out=probs)
+    return probs
+
+
+# ------------------------------------------------------------------------------------------ public API
+
+
+def extract_features(
+    audio: np.ndarray,
+    sample_rate: int,
+    kind: str = "phonemes",
+    *,
+    chunk_s: float | None = None,
+    workers: int | None = None,
+) -> AudioFeatures:
+    """Speech features of mono audio.
+
+    Args:
+        audio: ``(S,)`` floating-point samples, nominally in [-1, 1]; NaN/inf are zeroed and samples
+            outside [-1, 1] clipped (with a warning).
+        sample_rate: Hz; resampled to 16 kHz if different.
+        kind: ``"phonemes"`` (hama log-posteriors, D = 191, 50 Hz) or ``"mel"`` (log-mel, D = 80, 100 Hz).
+        chunk_s: chunk length in seconds for bounded-memory processing; default 28 s for phonemes
+            (at most 29.98 s is used) and 30 s for mel. Mel results do not depend on it; phoneme results
+            do slightly (see the module docstring).
+        workers: phoneme chunks processed in parallel threads; default ``min(4, os.cpu_count())``.
+
+    Returns:
+        :class:`AudioFeatures` with ``N = S16 // 320 + 1`` (phonemes) or ``S16 // 160 + 1`` (mel) frames,
+        where ``S16`` is the number of samples at 16 kHz.
+
+    Raises:
+        NvpError: empty or non-mono audio, a bad sample rate or kind, or hama unavailable.
+    """
+    if kind not in FEATURE_KINDS:
+        raise NvpError(f"feature kind must be one of {FEATURE_KINDS}, found {kind!r}")
+    if chunk_s is not None and not (math.isfinite(chunk_s) and chunk_s > 0):
+        raise NvpError(f"expected a positive chunk length in seconds, found {chunk_s!r}")
+    wav = _prepare_audio(audio, sample_rate)
+    duration = len(wav) / SAMPLE_RATE
+    if kind == "mel":
+        values = _extract_mel(wav, MEL_CHUNK_S if chunk_s is None else chunk_s)
+        return AudioFeatures(values=values, rate=MEL_RATE, kind="mel", duration_s=duration)
+    if workers is None:
+        workers = min(4, os.cpu_count() or 1)
+    values = _extract_phonemes(wav, PHONEME_CHUNK_S if chunk_s is None else chunk_s, workers)
+    return AudioFeatures(values=values, rate=PHONEME_RATE, kind="phonemes", duration_s=duration)
+
+
+def features_from_file(path: str | os.PathLike[str], kind: str = "phonemes", **kwargs: Any) -> AudioFeatures:
+    """Speech features of an audio or video file's (first) audio track, mixed to mono at 16 kHz.
+
+    Any format :func:`nvp.media.read_audio` reads (wav, flac, mp3, m4a, mp4, ...). Keyword arguments go to
+    :func:`extract_features`. Raises :class:`nvp.errors.MediaError` for unreadable files.
+    """
+    from nvp.media import read_audio
+
+    audio = read_audio(Path(path), sample_rate=SAMPLE_RATE)
+    return extract_features(audio, SAMPLE_RATE, kind=kind, **kwargs)
+
+
+def _tent_smooth(values: np.ndarray, factor: float) -> np.ndarray:
+    """Low-pass ``(N, D)`` along N with a triangular kernel of half-width ``factor`` frames (normalised).
+
+    This is the anti-aliasing filter for reading features of rate ``r`` at spacing ``factor / r``: for
+    ``factor == 2`` the kernel is ``[1/4, 1/2, 1/4]``. Edges are extended with the edge values.
+    """
+    from scipy.ndimage import convolve1d
+
+    half = int(math.ceil(factor)) - 1
+    j = np.arange(-half, half + 1, dtype=np.float64)
+    kernel = np.maximum(0.0, 1.0 - np.abs(j) / factor)
+    kernel /= kernel.sum()
+    return convolve1d(values, kernel.astype(np.float32), axis=0, mode="nearest")
+
+
+def frame_windows(
+    features: AudioFeatures,
+    fps: float,
+    num_frames: int | None = None,
+    window: int = 16,
+    window_rate: float = DEFAULT_WINDOW_RATE,
+    block: int = 2048,
+) -> np.ndarray:
+    """Per-video-frame windows of features, ``(T, window, D)`` float32.
+
+    Video frame ``i`` is at time ``t_i = i / fps`` seconds. Its window holds the features at times
+    ``t_i + (k - window // 2) / window_rate`` for ``k = 0 .. window - 1``, so position ``window // 2`` is
+    ``t_i`` itself and the window spans ``window / window_rate`` seconds (320 ms for 16 at 50 Hz).
+    Feature values at a time ``t`` are read from the feature time line (frame ``n`` at ``n / rate``) by
+    linear interpolation between the two nearest frames, and times before the first or after the last
+    frame take the edge frame's value (edge padding). When ``window_rate`` is below the feature rate
+    (e.g. 100 Hz mel read at 50 Hz) the features are first smoothed with a triangular kernel of half-width
+    ``rate / window_rate`` frames so that the coarser sampling does not alias (for mel at 100 Hz and the
+    default 50 Hz: weights 1/4, 1/2, 1/4). At 25 fps and 50 Hz phoneme features every window sample falls
+    exactly on a feature frame (no interpolation); at 29.97 or 30 fps samples in between are blended.
+
+    Args:
+        features: the audio features (any kind and rate).
+        fps: video frame rate in frames per second, e.g. 25, 30 or 29.97 (30000/1001).
+        num_frames: T; default :func:`num_video_frames` of the audio duration, ``ceil(duration * fps)``.
+        window: samples per window (W).
+        window_rate: samples per second inside a window.
+        block: video frames processed at a time (bounds temporary memory to a few times the output block).
+
+    Returns:
+        ``(T, W, D)`` float32 windows.
+    """
+    if not (math.isfinite(fps) and fps > 0):
+        raise NvpError(f"expected a positive video frame rate, found {fps!r}")
+    if not (math.isfinite(window_rate) and window_rate > 0):
+        raise NvpError(f"expected a positive window sample rate in Hz, found {window_rate!r}")
+    if window < 1:
+        raise NvpError(f"expected a window of at least 1 feature frame, found {window}")
+    if features.num_frames == 0:
+        raise NvpError("expected at least one feature frame, found none")
+    t_count = num_video_frames(features.duration_s, fps) if num_frames is None else int(num_frames)
+    if t_count < 0:
+        raise NvpError(f"expected a non-negative number of video frames, found {num_frames}")
+
+    src = features.values
+    factor = features.rate / window_rate
+    if factor > 1.0 + 1e-9:
+        src = _tent_smooth(src, factor)
+    n = features.num_frames
+    offsets = (np.arange(window, dtype=np.float64) - window // 2) / window_rate
+    out = np.empty((t_count, window, features.dim), dtype=np.float32)
+    for b0 in range(0, t_count, block):
+        b1 = min(t_count, b0 + block)
+        times = np.arange(b0, b1, dtype=np.float64) / fps
+        pos = (times[:, None] + offsets[None, :]) * features.rate
+        near = np.round(pos)
+        pos = np.where(np.abs(pos - near) < 1e-6, near, pos)  # exact grid hits stay exact
+        pos = np.clip(pos, 0.0, n - 1)
+        i0 = np.floor(pos).astype(np.int64)
+        i1 = np.minimum(i0 + 1, n - 1)
+        w = (pos - i0).astype(np.float32)[..., None]
+        out[b0:b1] = src[i0] * (1.0 - w) + src[i1] * w
+    return out
+
+
+# ---------------------------------------------------------------------------------------------- speech
+
+
+def rms_envelope_db(audio: np.ndarray, sample_rate: int, block_s: float = 0.02) -> np.ndarray:
+    """``(S // B,)`` float32 RMS level in dBFS of consecutive non-overlapping blocks of ``block_s`` seconds.
+
+    ``B = round(block_s * sample_rate)`` samples; each block's mean is removed first (DC offset), its
+    level is ``10 log10(mean(x^2))`` with 0 dBFS = RMS 1.0 (a full-scale sine is -3 dBFS), floored at
+    -120 dBFS. Audio is clipped to [-1, 1] and NaN set to 0 first; a trailing partial block is dropped
+    (for audio shorter than one block, the whole audio is one block).
+    """
+    arr = np.asarray(audio)
+    if arr.ndim != 1 or arr.size == 0:
+        raise NvpError(f"expected non-empty mono audio of shape (S,), found shape {arr.shape}")
+    b = max(1, int(round(block_s * sample_rate)))
+    nblocks = max(1, len(arr) // b)
+    out = np.empty(nblocks, dtype=np.float32)
+    step = max(1, (1 << 20) // b)  # ~1M samples at a time
+    for k0 in range(0, nblocks, step):
+        k1 = min(nblocks, k0 + step)
+        x = arr[k0 * b : k1 * b] if len(arr) >= b else arr
+        x = np.clip(np.nan_to_num(x.astype(np.float64), nan=0.0), -1.0, 1.0).reshape(k1 - k0, -1)
+        out[k0:k1] = 10.0 * np.log10(np.maximum(x.var(axis=1), 1e-12))
+    return out
+
+
+def speech_activity(
+    audio: np.ndarray,
+    sample_rate: int,
+    threshold_db: float = SPEECH_THRESHOLD_DB,
+    min_active_s: float = SPEECH_MIN_ACTIVE_S,
+) -> bool:
+    """Whether audio contains speech-like energy: at least ``min_active_s`` seconds of 20 ms blocks whose
+    RMS level (:func:`rms_envelope_db`) exceeds ``threshold_db`` dBFS (default -45).
+
+    This is an energy test, not a voice detector: silence, digital zeros, dither and quiet room tone
+    give False; speech, but also music or loud noise, give True.
+    """
+    block_s = 0.02
+    env = rms_envelope_db(audio, sample_rate, block_s)
+    needed = max(1, int(math.ceil(min_active_s / block_s - 1e-9)))
+    active = int(np.count_nonzero(env > threshold_db))
+    if len(env) < needed:  # shorter than min_active_s: all of it must be active
+        return active == len(env)
+    return active >= needed

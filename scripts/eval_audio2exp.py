@@ -1,0 +1,153 @@
+"""Evaluate audio-to-expression on held-out people and on foreign/synthetic speech.
+
+    python scripts/eval_audio2exp.py [--phonemes NET.json] [--mel out/a2e/mel/best.json]
+
+1. Held-out time of validation videos (never seen by the generic network): the person map is solved on the
+   first 80 % of each video, the last 20 % is predicted from its audio. Metrics (see
+   ``nvp.train_audio2exp.evaluate_person``): mouth landmark error / IOD, lip vertex error (mm), lip-closure
+   F1. Rows: phonemes net, the same net without its temporal filter, mel net (if given), and the
+   person's-mean-expression baseline.
+2. Robustness: the first validation person's map driven by every clip in ../shared/data/audio (other
+   languages, singing, text-to-speech) and by silence: correlation between predicted mouth opening and the
+   audio's loudness envelope, and the mouth opening during pauses vs speech.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from nvp.audio_features import extract_features, frame_windows
+from nvp.corpus import load_sample
+from nvp.face_model import default_face_model
+from nvp.media import read_audio
+from nvp.train_audio2exp import audio_expressions, evaluate_person, load_net
+
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+ASSETS = Path(__file__).resolve().parents[1] / "nvp" / "assets"
+
+
+def table(rows: list[dict], cols: list[str]) -> str:
+    out = "| " + " | ".join(cols) + " |\n|" + "---|" * len(cols) + "\n"
+    for r in rows:
+        out += (
+            "| " + " | ".join(f"{r[c]:.4f}" if isinstance(r[c], float) else str(r[c]) for c in cols) + " |\n"
+        )
+    return out
+
+
+def loudness_db(audio: np.ndarray, sr: int, fps: float, n: int) -> np.ndarray:
+    """RMS level in dBFS per video frame (window = one frame period, centred)."""
+    hop = sr / fps
+    out = np.empty(n)
+    for i in range(n):
+        c = int(i * hop)
+        seg = audio[max(c - int(hop / 2), 0) : c + int(hop / 2) + 1]
+        out[i] = 10 * np.log10(np.mean(seg**2) + 1e-10) if len(seg) else -100.0
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--phonemes", type=Path, default=ASSETS / "audio2exp_phonemes.json")
+    ap.add_argument("--mel", type=Path)
+    ap.add_argument("--cache", type=Path, default=Path("out/a2e/cache"))
+    ap.add_argument("--out", type=Path, default=Path("out/eval_audio2exp"))
+    args = ap.parse_args(argv)
+    if not SHARED.is_dir():
+        print(f"no evaluation data: {SHARED} does not exist")
+        return 0
+    model = default_face_model()
+    net, manifest = load_net(args.phonemes)
+    val_names = manifest["split"]["validation"]
+    args.out.mkdir(parents=True, exist_ok=True)
+    nets = {"phonemes": (net, True), "phonemes, no filter": (net, False)}
+    if args.mel:
+        nets["mel"] = (load_net(args.mel)[0], True)
+    rows = []
+    samples = {}
+    for name in val_names:
+        video = SHARED / "video" / name
+        for label, (n, use_filter) in nets.items():
+            kind = "mel" if label.startswith("mel") else "phonemes"
+            s = samples.get((name, kind)) or load_sample(video, args.cache, kind, progress=False)
+            samples[(name, kind)] = s
+            r = evaluate_person(s, model, audio_expressions(n, s.windows, use_filter))
+            rows.append({"video": name, "method": label, **r})
+        rows.append(
+            {
+                "video": name,
+                "method": "mean expression",
+                **evaluate_person(samples[(name, "phonemes")], model, None),
+            }
+        )
+    cols = [
+        "video",
+        "method",
+        "mouth_error_iod",
+        "lip_vertex_error_mm",
+        "closure_precision",
+        "closure_recall",
+        "closure_f1",
+        "test_frames",
+    ]
+    summary = []
+    for label in [*nets, "mean expression"]:
+        sel = [r for r in rows if r["method"] == label]
+        summary.append({"method": label, **{c: float(np.mean([r[c] for r in sel])) for c in cols[2:-1]}})
+    text = "## Held-out 20 % of validation videos\n\n" + table(rows, cols) + "\n### Mean over videos\n\n"
+    text += table(summary, ["method", *cols[2:-1]])
+
+    # robustness: one person's map driven by other audio
+    from nvp.audio2exp import solve_person_map
+
+    s = samples[(val_names[0], "phonemes")]
+    ae = audio_expressions(net, s.windows)
+    pmap = solve_person_map(ae[s.valid], s.expression[s.valid], 10.0)
+    gap_person = np.linalg.norm(
+        np.diff(model.vertices(s.tracked.identity, s.expression)[:, [13, 14]], axis=1)[:, 0], axis=-1
+    )
+    closed_level = np.percentile(gap_person, 5)
+    rob = []
+    clips = sorted((SHARED / "audio").glob("*.wav"))
+    sr = 16000
+    for clip in [None, *clips]:
+        audio = np.zeros(sr * 4, np.float32) if clip is None else read_audio(clip, sr)
+        fps = 25.0
+        w = frame_windows(extract_features(audio, sr, kind="phonemes"), fps).astype(np.float32)
+        expr = pmap.apply(audio_expressions(net, w))
+        v = model.vertices(s.tracked.identity, expr)
+        gap = np.linalg.norm(v[:, 13] - v[:, 14], axis=-1)
+        loud = loudness_db(audio, sr, fps, len(gap))
+        speech = loud > loud.max() - 30
+        pause = loud < loud.max() - 45
+        corr = float(np.corrcoef(gap, loud)[0, 1]) if clip is not None and gap.std() > 0 else float("nan")
+        rob.append(
+            {
+                "audio": "silence (4 s of zeros)" if clip is None else clip.name,
+                "corr_opening_loudness": corr,
+                "opening_speech_mm": float(10 * gap[speech].mean())
+                if speech.any() and clip is not None
+                else float("nan"),
+                "opening_pause_mm": float(10 * gap[pause].mean()) if pause.any() else float(10 * gap.mean()),
+                "person_closed_mm": float(10 * closed_level),
+            }
+        )
+    text += f"\n## Robustness: person map of {val_names[0]} driven by other audio\n\n"
+    text += table(
+        rob, ["audio", "corr_opening_loudness", "opening_speech_mm", "opening_pause_mm", "person_closed_mm"]
+    )
+    (args.out / "results.md").write_text(text)
+    (args.out / "results.json").write_text(
+        json.dumps({"heldout": rows, "summary": summary, "robustness": rob}, indent=2) + "\n"
+    )
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

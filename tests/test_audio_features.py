@@ -1,0 +1,355 @@
+"""Speech features: shapes and rates, alignment to video frames, silence/clipping, chunking, file input."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import soundfile as sf
+
+from nvp import audio_features
+from nvp.audio_features import (
+    MEL_BANDS,
+    MEL_POWER_FLOOR,
+    MEL_RATE,
+    PHONEME_DIM,
+    PHONEME_LOG_FLOOR,
+    PHONEME_RATE,
+    SAMPLE_RATE,
+    AudioFeatures,
+    _phoneme_chunks,
+    extract_features,
+    features_from_file,
+    frame_windows,
+    mel_filterbank,
+    num_video_frames,
+    phoneme_labels,
+    rms_envelope_db,
+    speech_activity,
+)
+from nvp.errors import MediaError, NvpError
+
+SR = SAMPLE_RATE
+
+
+def speechlike(seconds: float, sr: int = SR, level: float = 0.3, seed: int = 0) -> np.ndarray:
+    """Vowel-like test signal: a gliding-pitch harmonic tone with formant-weighted partials, chopped into
+    syllables of 120-250 ms by a smooth envelope, with a little noise for consonants."""
+    rng = np.random.default_rng(seed)
+    n = int(round(seconds * sr))
+    t = np.arange(n) / sr
+    f0 = 120 + 30 * np.sin(2 * np.pi * 0.7 * t) + 15 * np.sin(2 * np.pi * 2.3 * t)
+    phase = 2 * np.pi * np.cumsum(f0) / sr
+    formants = np.array([700.0, 1200.0, 2600.0])
+    x = np.zeros(n)
+    for h in range(1, 30):
+        f = h * f0
+        amp = sum(np.exp(-(((f - fm) / 150.0) ** 2)) for fm in formants) + 0.05
+        x += amp * np.sin(h * phase) / h
+    env = np.zeros(n)
+    pos = 0
+    while pos < n:
+        syl = int(rng.uniform(0.12, 0.25) * sr)
+        gap = int(rng.uniform(0.03, 0.12) * sr)
+        end = min(n, pos + syl)
+        env[pos:end] = np.sin(np.linspace(0, np.pi, end - pos))
+        pos = end + gap
+    x = x * env + 0.02 * rng.standard_normal(n) * env
+    return (level * x / np.abs(x).max()).astype(np.float32)
+
+
+def babble(seconds: float, sr: int = SR, seed: int = 0) -> np.ndarray:
+    """Syllable-like test signal that hama hears as phones (about 10 % non-blank frames): noise-burst
+    consonants followed by 100-220 ms vowels (harmonics of a falling 100-160 Hz pitch weighted by the
+    formants of one of six vowels), short gaps and occasional 0.3-0.5 s pauses."""
+    rng = np.random.default_rng(seed)
+    n = int(round(seconds * sr))
+    x = np.zeros(n)
+    vowels = [(730, 1090, 2440), (270, 2290, 3010), (300, 870, 2240), (530, 1840, 2480), (660, 1720, 2410)]
+    pos = int(0.2 * sr)
+    while pos < n - sr // 2:
+        c = int(rng.uniform(0.04, 0.09) * sr)
+        burst = rng.standard_normal(c + 1) * 0.15
+        if rng.random() < 0.5:
+            burst = np.diff(burst) * 2  # high-passed: fricative-like
+        x[pos : pos + c] += burst[:c] * np.hanning(c)
+        pos += c
+        length = int(rng.uniform(0.10, 0.22) * sr)
+        t = np.arange(length) / sr
+        f0 = rng.uniform(100, 160) * (1 - 0.15 * t / t[-1])
+        phase = 2 * np.pi * np.cumsum(f0) / sr
+        formants = vowels[rng.integers(len(vowels))]
+        v = np.zeros(length)
+        for h in range(1, 40):
+            f = h * f0
+            amp = sum(
+                g * np.exp(-(((f - fm) / (60 + 0.05 * fm)) ** 2))
+                for fm, g in zip(formants, (1, 0.6, 0.3), strict=True)
+            )
+            v += (amp + 0.01) * np.sin(h * phase)
+        x[pos : pos + length] += 0.3 * v / np.abs(v).max() * np.hanning(length) ** 0.5
+        pos += length + int(rng.uniform(0.0, 0.1) * sr if rng.random() < 0.8 else rng.uniform(0.3, 0.5) * sr)
+    return (0.5 * x / np.abs(x).max()).astype(np.float32)
+
+
+# ------------------------------------------------------------------------------------ shapes and rates
+
+
+def test_mel_shapes_and_rate():
+    audio = speechlike(1.0)
+    f = extract_features(audio, SR, kind="mel")
+    assert f.kind == "mel" and f.rate == MEL_RATE == 100.0
+    assert f.values.shape == (SR // 160 + 1, MEL_BANDS) and f.values.dtype == np.float32
+    assert f.duration_s == pytest.approx(1.0)
+    assert np.isfinite(f.values).all() and f.values.min() >= math.log(MEL_POWER_FLOOR) - 1e-5
+    np.testing.assert_allclose(f.times()[:3], [0.0, 0.01, 0.02])
+
+
+def test_mel_filterbank_covers_every_band():
+    fb = mel_filterbank()
+    assert fb.shape == (80, 257)
+    assert (fb.sum(axis=1) > 0).all()  # no empty band at the low end
+
+
+def test_phoneme_shapes_and_rate():
+    audio = babble(1.0)
+    f = extract_features(audio, SR, kind="phonemes")
+    assert f.kind == "phonemes" and f.rate == PHONEME_RATE == 50.0
+    assert f.values.shape == (SR // 320 + 1, PHONEME_DIM) == (51, 191) and f.values.dtype == np.float32
+    assert np.isfinite(f.values).all()
+    assert f.values.min() >= PHONEME_LOG_FLOOR and f.values.max() <= 1e-5
+    np.testing.assert_allclose(np.exp(f.values).sum(axis=1), 1.0, atol=1e-3)
+    labels = phoneme_labels()
+    assert len(labels) == PHONEME_DIM and labels[-1] == "<blank>"
+
+
+def test_other_sample_rate_is_resampled():
+    f = extract_features(speechlike(1.5, sr=22050), 22050, kind="mel")
+    assert f.duration_s == pytest.approx(1.5, abs=1e-4)
+    assert f.values.shape == (24000 // 160 + 1, MEL_BANDS)
+
+
+@pytest.mark.parametrize(
+    ("audio", "sr", "kind"),
+    [
+        (np.zeros((2, 100), np.float32), SR, "mel"),
+        (np.zeros(0, np.float32), SR, "mel"),
+        (np.zeros(100, np.int16), SR, "mel"),
+        (np.zeros(100, np.float32), 0, "mel"),
+        (np.zeros(100, np.float32), SR, "deepspeech"),
+    ],
+)
+def test_bad_input_raises(audio, sr, kind):
+    with pytest.raises(NvpError, match="expected|must be"):
+        extract_features(audio, sr, kind=kind)
+
+
+def test_audio_features_validates():
+    with pytest.raises(NvpError, match="float32"):
+        AudioFeatures(np.zeros((3, 2)), 50.0, "mel", 0.06)
+    with pytest.raises(NvpError, match="2-D"):
+        AudioFeatures(np.zeros(3, np.float32), 50.0, "mel", 0.06)
+    with pytest.raises(NvpError, match="rate"):
+        AudioFeatures(np.zeros((3, 2), np.float32), 0.0, "mel", 0.06)
+
+
+# ------------------------------------------------------------------------------------------- alignment
+
+
+def impulse_features(rate: float, n: int, at: int) -> AudioFeatures:
+    v = np.zeros((n, 1), np.float32)
+    v[at] = 1.0
+    return AudioFeatures(values=v, rate=rate, kind="phonemes", duration_s=n / rate)
+
+
+def test_windows_exact_at_25fps():
+    # 50 Hz features, impulse at 1.0 s; at 25 fps every window sample lies on a feature frame.
+    f = impulse_features(50.0, 150, at=50)
+    w = frame_windows(f, 25.0)
+    assert w.shape == (75, 16, 1)
+    assert w[25, :, 0].argmax() == 8 and w[25, 8, 0] == 1.0 and w[25].sum() == 1.0
+    assert w[24, 10, 0] == 1.0  # 0.96 s + 2 / 50 s
+    assert w[26, 6, 0] == 1.0  # 1.04 s - 2 / 50 s
+    assert w[20].sum() == 0.0  # 0.8 s: the window [0.64, 0.94] s misses 1.0 s
+
+
+@pytest.mark.parametrize("fps", [25.0, 30.0, 30000 / 1001])
+def test_windows_match_reference_interpolation(fps):
+    rng = np.random.default_rng(1)
+    f = AudioFeatures(rng.standard_normal((173, 3)).astype(np.float32), 50.0, "phonemes", 173 / 50)
+    w = frame_windows(f, fps, window=16)
+    assert w.shape == (math.ceil(173 / 50 * fps - 1e-6), 16, 3)
+    for i in [0, 1, 7, len(w) // 2, len(w) - 1]:
+        times = i / fps + (np.arange(16) - 8) / 50.0
+        for d in range(3):
+            ref = np.interp(times, f.times(), f.values[:, d])  # edge values outside, like edge padding
+            np.testing.assert_allclose(w[i, :, d], ref, atol=1e-5)
+
+
+def test_windows_edge_padding_and_num_frames():
+    f = AudioFeatures(np.arange(10, dtype=np.float32)[:, None], 50.0, "phonemes", 0.2)
+    w = frame_windows(f, 25.0, num_frames=7, window=4)
+    assert w.shape == (7, 4, 1)
+    np.testing.assert_array_equal(w[0, :, 0], [0, 0, 0, 1])  # t - 2/50, t - 1/50 clamp to frame 0
+    np.testing.assert_array_equal(w[6, :, 0], [9, 9, 9, 9])  # 0.24 s is after the last frame (0.18 s)
+
+
+def test_num_video_frames():
+    assert num_video_frames(20.0, 25.0) == 500
+    assert num_video_frames(2.0, 30000 / 1001) == 60  # 59.94 -> 60
+    assert num_video_frames(1.0, 29.97) == 30
+    assert num_video_frames(0.0, 25.0) == 0
+
+
+def test_mel_windows_span_320ms_and_keep_constants():
+    f = AudioFeatures(np.full((101, 2), -5.0, np.float32), 100.0, "mel", 1.0)
+    w = frame_windows(f, 25.0)
+    np.testing.assert_allclose(w, -5.0, atol=1e-6)  # smoothing keeps constants; edges padded
+
+
+@pytest.mark.parametrize("fps", [25.0, 30000 / 1001])
+def test_click_lands_at_window_centre(fps):
+    i = 37
+    t = i / fps + 0.004  # a click 4 ms after video frame i
+    audio = np.zeros(3 * SR, np.float32)
+    s = int(round(t * SR))
+    audio[s : s + 16] = np.hanning(16).astype(np.float32)
+    f = extract_features(audio, SR, kind="mel")
+    w = frame_windows(f, fps)
+    energy = w[i].mean(axis=1)  # (16,) mean log-mel power at each window position
+    assert energy.argmax() == 8
+    # the frame nearest the click is the one whose centre sample is loudest
+    assert np.argmax(w[:, 8].mean(axis=1)) == i
+
+
+# ------------------------------------------------------------------------------ silence and clipping
+
+
+def test_silence_is_finite_and_not_speech():
+    silence = np.zeros(SR, np.float32)
+    mel = extract_features(silence, SR, kind="mel").values
+    np.testing.assert_allclose(mel, math.log(MEL_POWER_FLOOR), rtol=1e-6)
+    ph = extract_features(silence, SR, kind="phonemes").values
+    assert np.isfinite(ph).all()
+    assert not speech_activity(silence, SR)
+    quiet = (1e-4 * np.random.default_rng(0).standard_normal(SR)).astype(np.float32)  # -80 dBFS
+    assert not speech_activity(quiet, SR)
+    assert speech_activity(speechlike(1.0), SR)
+    assert speech_activity(speechlike(1.0, level=0.02), SR)  # quiet speech, peaks around -34 dBFS
+
+
+def test_speech_activity_needs_enough_active_time():
+    audio = np.zeros(2 * SR, np.float32)
+    audio[SR : SR + 800] = 0.5  # 50 ms burst: less than 0.2 s active
+    audio[SR : SR + 800] *= np.sign(np.sin(np.arange(800)))
+    assert not speech_activity(audio, SR)
+    audio[SR : SR + 8000] = 0.5 * np.sin(2 * np.pi * 200 * np.arange(8000) / SR)  # 0.5 s tone
+    assert speech_activity(audio, SR)
+
+
+def test_rms_envelope_db_reference_levels():
+    t = np.arange(SR) / SR
+    sine = np.sin(2 * np.pi * 1000 * t).astype(np.float32)
+    env = rms_envelope_db(sine, SR)
+    assert env.shape == (50,)
+    np.testing.assert_allclose(env, 10 * np.log10(0.5), atol=0.05)  # full-scale sine: -3 dBFS
+    assert (rms_envelope_db(np.zeros(SR, np.float32), SR) == -120).all()
+
+
+def test_clipped_and_nan_input():
+    audio = 3.0 * speechlike(1.0, level=1.0)  # peaks at 3: heavily clipped
+    with_nan = audio.copy()
+    with_nan[100:200] = np.nan
+    for kind in ["mel", "phonemes"]:
+        f = extract_features(audio, SR, kind=kind)
+        ref = extract_features(np.clip(audio, -1, 1), SR, kind=kind)
+        assert np.isfinite(f.values).all()
+        np.testing.assert_array_equal(f.values, ref.values)
+    assert np.isfinite(extract_features(with_nan, SR, kind="mel").values).all()
+
+
+# ------------------------------------------------------------------------------------------- chunking
+
+
+def test_mel_chunked_equals_whole_70s():
+    audio = np.tile(speechlike(7.0, seed=3), 10)
+    audio[: SR // 2] = 0  # silence at the start too
+    chunked = extract_features(audio, SR, kind="mel")  # 30 s chunks
+    odd = extract_features(audio, SR, kind="mel", chunk_s=7.37)  # seams off the hop grid
+    whole = extract_features(audio, SR, kind="mel", chunk_s=1000.0)
+    assert whole.values.shape == (70 * SR // 160 + 1, MEL_BANDS)
+    np.testing.assert_allclose(chunked.values, whole.values, atol=1e-4)
+    np.testing.assert_allclose(odd.values, whole.values, atol=1e-4)
+
+
+@pytest.mark.parametrize("n", [1401, 1500, 2316, 2999, 5000, 30001])
+def test_phoneme_chunk_plan(n):
+    chunk, overlap = 1400, 200
+    ranges = _phoneme_chunks(n, chunk, overlap)
+    assert ranges[0][0] == 0 and ranges[-1][1] == n
+    for (a0, a1), (b0, _) in zip(ranges, ranges[1:], strict=False):
+        assert a1 - a0 <= chunk and b0 > a0
+        assert a1 - b0 >= overlap  # enough overlap to cross-fade
+    for (_, a1), (c0, _) in zip(ranges, ranges[2:], strict=False):
+        assert a1 <= c0  # never three chunks on one frame
+
+
+def test_chunk_assembly_is_exact_for_a_local_recognizer(monkeypatch):
+    """With a stand-in recogniser whose frames depend only on their own 320 samples, chunked phoneme
+    extraction (overlaps, cross-fades, worker threads) must reproduce the single pass exactly."""
+
+    def fake(audio: np.ndarray) -> np.ndarray:
+        n = len(audio) // 320 + 1
+        padded = np.zeros(n * 320, np.float32)
+        padded[: len(audio)] = audio
+        energy = (padded.reshape(n, 320) ** 2).mean(axis=1, keepdims=True)
+        logits = np.log(energy + 1e-6) * np.linspace(0.0, 1.0, PHONEME_DIM)[None, :]
+        return (logits - np.log(np.exp(logits).sum(axis=1, keepdims=True))).astype(np.float32)
+
+    monkeypatch.setattr(audio_features, "_recognizer", lambda: fake)
+    audio = np.tile(speechlike(7.0, seed=3), 10)  # 70 s
+    whole = audio_features._extract_phonemes(audio, chunk_s=1000.0, workers=1)  # one pass (fake has no limit)
+    for chunk_s, workers in [(28.0, 2), (5.3, 3)]:
+        chunked = extract_features(audio, SR, kind="phonemes", chunk_s=chunk_s, workers=workers)
+        assert chunked.values.shape == (70 * SR // 320 + 1, PHONEME_DIM)
+        np.testing.assert_allclose(chunked.values, whole, atol=1e-4)
+
+
+def test_phonemes_chunked_close_to_whole():
+    """hama attends over its whole input, so chunking changes posteriors slightly (module docstring)."""
+    audio = babble(12.0, seed=5)
+    whole = extract_features(audio, SR, kind="phonemes")  # one 12 s pass
+    chunked = extract_features(audio, SR, kind="phonemes", chunk_s=5.0, workers=2)
+    assert chunked.values.shape == whole.values.shape == (12 * SR // 320 + 1, PHONEME_DIM)
+    assert (whole.values.argmax(1) != 190).mean() > 0.05  # not all blank: the test is not trivial
+    p_whole, p_chunked = np.exp(whole.values), np.exp(chunked.values)
+    np.testing.assert_allclose(p_chunked.sum(axis=1), 1.0, atol=1e-3)
+    assert (whole.values.argmax(1) == chunked.values.argmax(1)).mean() > 0.85
+    assert np.abs(p_whole - p_chunked).sum(axis=1).mean() < 0.3
+
+
+# ---------------------------------------------------------------------------------------------- files
+
+
+def test_features_from_stereo_44k_wav(tmp_path):
+    sr = 44100
+    left = speechlike(1.5, sr=sr)
+    stereo = np.stack([left, np.zeros_like(left)], axis=1)
+    path = tmp_path / "stereo.wav"
+    sf.write(path, stereo, sr, subtype="PCM_16")
+    f = features_from_file(path, kind="mel")
+    assert f.rate == MEL_RATE and f.values.shape[1] == MEL_BANDS
+    assert f.duration_s == pytest.approx(1.5, abs=0.01)
+    assert abs(f.values.shape[0] - (int(1.5 * SR) // 160 + 1)) <= 1
+    ref = extract_features(left / 2, sr, kind="mel")  # mono mix of (left, silence)
+    n = min(len(ref.values), len(f.values))
+    loud = ref.values[:n] > -10  # compare where there is signal
+    assert np.median(np.abs(f.values[:n][loud] - ref.values[:n][loud])) < 0.1
+    w = frame_windows(f, 25.0)
+    assert w.shape == (38, 16, MEL_BANDS)
+
+
+def test_features_from_missing_file(tmp_path):
+    with pytest.raises(MediaError):
+        features_from_file(tmp_path / "nope.wav", kind="mel")
