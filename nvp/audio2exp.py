@@ -56,6 +56,9 @@ class PerFrameNet(nn.Module):
             layers += [nn.Conv1d(c, out, 3, stride=2, padding=1), nn.LeakyReLU(cfg.negative_slope)]
             c = out
         self.conv = nn.Sequential(*layers)
+        # per-channel input standardisation, set from the training corpus (see ``set_input_stats``)
+        self.register_buffer("input_mean", torch.zeros(cfg.feature_dim))
+        self.register_buffer("input_std", torch.ones(cfg.feature_dim))
         steps = cfg.window
         for _ in cfg.conv_channels:
             steps = (steps + 1) // 2
@@ -74,7 +77,14 @@ class PerFrameNet(nn.Module):
     def forward(self, windows: torch.Tensor) -> torch.Tensor:
         if windows.ndim != 3:
             raise ValueError(f"expected feature windows (B, W, D), got {tuple(windows.shape)}")
-        return self.fc(self.conv(windows.transpose(1, 2)))
+        x = (windows - self.input_mean) / self.input_std
+        return self.fc(self.conv(x.transpose(1, 2)))
+
+    def set_input_stats(self, features: torch.Tensor) -> None:
+        """Standardise inputs with the per-channel mean and std of ``features`` ``(..., D)``."""
+        flat = features.reshape(-1, features.shape[-1]).double()
+        self.input_mean.copy_(flat.mean(0))
+        self.input_std.copy_(flat.std(0).clamp_min(1e-3))
 
 
 class ExpressionFilter(nn.Module):

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 from pathlib import Path
@@ -61,13 +60,21 @@ def _cmd_train_audio2exp(args: argparse.Namespace) -> int:
     train_set = [s for s in samples if s.name not in val_names]
     val_set = [s for s in samples if s.name in val_names]
     cfg = TrainConfig(kind=args.features, steps=args.steps, seed=args.seed)
-    result = train(train_set, val_set, default_face_model(), cfg, Path(args.output), progress=not args.quiet)
     split = {
         "train": [s.name for s in train_set],
         "validation": [s.name for s in val_set],
         "excluded": sorted(exclude),
     }
-    (Path(args.output) / "split.json").write_text(json.dumps(split, indent=2) + "\n")
+    frames = {"train_frames": int(sum(s.valid.sum() for s in train_set))}
+    result = train(
+        train_set,
+        val_set,
+        default_face_model(),
+        cfg,
+        Path(args.output),
+        progress=not args.quiet,
+        provenance={"split": split, **frames, "corpus": str(args.corpus)},
+    )
     print(
         f"best validation mouth error {result['best_mouth_error_iod']:.4f} IOD → "
         f"{Path(args.output) / 'best.json'}"

@@ -202,11 +202,13 @@ def train(
     cfg: TrainConfig,
     out_dir: Path,
     progress: bool = True,
+    provenance: dict | None = None,
 ) -> dict:
     """Train the generic network and the training videos' person maps; resumable from ``out_dir``.
 
     Writes ``checkpoint.pt`` every ``val_every`` steps (network, maps, optimiser, step, RNG state) and
-    ``best.{npz,json}`` whenever the mean validation mouth error improves. Returns the training log.
+    ``best.{npz,json}`` whenever the mean validation mouth error improves; its manifest holds the config,
+    the step, the validation metrics and ``provenance`` (e.g. which videos). Returns the training log.
     """
     out_dir.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
@@ -214,6 +216,9 @@ def train(
     if net_cfg.feature_dim != train_set[0].windows.shape[2]:
         net_cfg = Audio2ExpConfig(**{**asdict(net_cfg), "feature_dim": int(train_set[0].windows.shape[2])})
     net = Audio2ExpressionNet(net_cfg)
+    # frame-centre feature rows of every training video (each window's middle row covers the audio once)
+    centre = net_cfg.window // 2
+    net.per_frame.set_input_stats(torch.from_numpy(np.concatenate([s.windows[:, centre] for s in train_set])))
     k, a = model.num_exp, net_cfg.audio_exp_dim
     maps = torch.nn.Parameter(torch.zeros(len(train_set), k, a))
     bias = torch.nn.Parameter(torch.from_numpy(np.stack([s.expression[s.valid].mean(0) for s in train_set])))
@@ -290,7 +295,16 @@ def train(
             if summary["mouth_error_iod"] < best:
                 best = summary["mouth_error_iod"]
                 save_net(
-                    net, out_dir / "best", {"step": step, "validation": summary, "feature_kind": cfg.kind}
+                    net,
+                    out_dir / "best",
+                    {
+                        "feature_kind": cfg.kind,
+                        "step": step,
+                        "validation": summary,
+                        "validation_per_video": {s.name: r for s, r in zip(val_set, rows, strict=True)},
+                        "train_config": {k: v for k, v in asdict(cfg).items() if k != "net"},
+                        **(provenance or {}),
+                    },
                 )
             tmp = out_dir / ".checkpoint.tmp"
             torch.save(

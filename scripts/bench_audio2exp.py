@@ -1,0 +1,161 @@
+"""Benchmark audio → expressions: speed as a multiple of real time, and peak memory on a 10-minute file.
+
+    python scripts/bench_audio2exp.py [--minutes 10] [--repeats 3] [--kinds phonemes mel]
+
+The measured path is what ``nvp dub`` runs before rendering (``nvp.person.predict_expressions``): speech
+features → per-frame windows at 25 fps → shipped Audio2ExpressionNet (per-frame net + temporal filter) →
+person map → expression coefficients.
+
+1. Speed on a real 19.8 s English clip (``../shared/data/audio/latentsync__demo2_audio.wav``) when
+   ../shared is present, otherwise on synthetic syllable-like audio of the same length; best of
+   ``--repeats``, split into features / windows / network.
+2. Peak memory: the clip tiled to ``--minutes`` minutes, written as a 16 kHz wav, and predicted from the
+   file in a fresh process per kind (``ru_maxrss`` after imports and at the end, wall time).
+
+Target: >= 50x real time. The machine may be shared with other jobs; the load average is printed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_audio_features import CLIP, SR, synthetic_speech  # noqa: E402
+
+FPS = 25.0
+
+
+def _style(kind: str):
+    """A person style for the shipped net of ``kind`` (a random but plausible map: speed only)."""
+    from nvp.audio2exp import PersonMap
+    from nvp.face_model import default_face_model
+    from nvp.person import PersonStyle, default_audio2exp
+
+    net, manifest = default_audio2exp(kind)
+    k = default_face_model().num_exp
+    rng = np.random.default_rng(0)
+    pmap = PersonMap(
+        rng.normal(0, 0.1, (k, net.cfg.audio_exp_dim)).astype(np.float32), np.zeros(k, np.float32)
+    )
+    return net, PersonStyle(pmap, kind, manifest["sha256"], {})
+
+
+def speed(audio: np.ndarray, kind: str, repeats: int) -> dict:
+    import torch
+
+    from nvp.audio_features import extract_features, frame_windows
+    from nvp.train_audio2exp import audio_expressions
+
+    net, style = _style(kind)
+    best = {"features": np.inf, "windows": np.inf, "network": np.inf}
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        feats = extract_features(audio, SR, kind=kind)
+        t1 = time.perf_counter()
+        w = frame_windows(feats, FPS).astype(np.float32)
+        t2 = time.perf_counter()
+        with torch.inference_mode():
+            expr = style.person_map.apply(audio_expressions(net, w))
+        t3 = time.perf_counter()
+        for key, dt in zip(best, (t1 - t0, t2 - t1, t3 - t2), strict=True):
+            best[key] = min(best[key], dt)
+    dur = len(audio) / SR
+    total = sum(best.values())
+    return {
+        "kind": kind,
+        "frames": len(expr),
+        **{f"{k}_s": v for k, v in best.items()},
+        "x_realtime": dur / total,
+    }
+
+
+def child(path: str, kind: str) -> None:
+    """Run in a fresh process: predict from a file and print JSON with RSS figures."""
+    from nvp.media import read_audio
+    from nvp.person import predict_expressions
+
+    net, style = _style(kind)
+    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    t0 = time.perf_counter()
+    audio = read_audio(path, SR)
+    expr = predict_expressions(audio, SR, FPS, style, net)
+    dt = time.perf_counter() - t0
+    rss1 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print(json.dumps({"frames": len(expr), "seconds": dt, "rss_imports_mb": rss0, "rss_peak_mb": rss1}))
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--minutes", type=float, default=10.0)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--kinds", nargs="+", default=["phonemes", "mel"])
+    ap.add_argument("--child", nargs=2, metavar=("WAV", "KIND"), help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.child:
+        child(*args.child)
+        return 0
+    import soundfile as sf
+
+    from nvp.media import read_audio
+
+    if CLIP.exists():
+        audio, source = read_audio(CLIP, SR), f"{CLIP.name} (real English speech)"
+    else:
+        audio, source = synthetic_speech(19.8), "synthetic speech (../shared/data not present)"
+    dur = len(audio) / SR
+    print(f"# bench_audio2exp ({platform.machine()}, {os.cpu_count()} CPUs, load {os.getloadavg()[0]:.2f})")
+    print(f"clip: {source}, {dur:.1f} s, {FPS:g} fps\n")
+    print("| features | frames | features s | windows s | network s | x real time |")
+    print("|---|---|---|---|---|---|")
+    results: dict = {
+        "machine": platform.processor() or platform.machine(),
+        "clip_s": dur,
+        "speed": [],
+        "memory": [],
+    }
+    for kind in args.kinds:
+        r = speed(audio, kind, args.repeats)
+        results["speed"].append(r)
+        print(
+            f"| {kind} | {r['frames']} | {r['features_s']:.3f} | {r['windows_s']:.4f} | {r['network_s']:.4f} "
+            f"| {r['x_realtime']:.1f} |"
+        )
+    reps = int(np.ceil(args.minutes * 60 / dur))
+    long_audio = np.tile(audio, reps)[: int(args.minutes * 60 * SR)]
+    print(f"\n{args.minutes:g}-minute file (clip tiled), fresh process per kind\n")
+    print("| features | frames | wall s | x real time | RSS after imports MB | peak RSS MB |")
+    print("|---|---|---|---|---|---|")
+    with tempfile.TemporaryDirectory() as tmp:
+        wav = Path(tmp) / "long.wav"
+        sf.write(wav, long_audio, SR, subtype="PCM_16")
+        for kind in args.kinds:
+            out = subprocess.run(
+                [sys.executable, __file__, "--child", str(wav), kind],
+                capture_output=True,
+                text=True,
+                check=True,
+            )
+            m = json.loads(out.stdout.strip().splitlines()[-1])
+            m["kind"] = kind
+            results["memory"].append(m)
+            print(
+                f"| {kind} | {m['frames']} | {m['seconds']:.1f} | {args.minutes * 60 / m['seconds']:.1f} "
+                f"| {m['rss_imports_mb']:.0f} | {m['rss_peak_mb']:.0f} |"
+            )
+    print("\nBENCH_JSON " + json.dumps(results))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
