@@ -472,6 +472,32 @@ def extract_features(
     return AudioFeatures(values=values, rate=PHONEME_RATE, kind="phonemes", duration_s=duration)
 
 
+SPEAKER_NORM_RANGE = 6.9
+"""Mel frames whose mean log power lies within this many nats (30 dB) of the loud end (95th percentile)
+count as speech when :func:`speaker_normalized` estimates a voice's average spectrum."""
+
+
+def speaker_normalized(features: AudioFeatures) -> AudioFeatures:
+    """Features with the voice and recording channel's average spectrum removed (what the network sees).
+
+    For ``"mel"``: the per-band mean over the file's speech frames (mean log power within
+    :data:`SPEAKER_NORM_RANGE` of the loud end) is subtracted from every frame (cepstral-mean-style
+    normalisation), so a different microphone, room or voice timbre shifts nothing; silence stays
+    far below speech. ``"phonemes"`` are posteriors, already speaker-independent: returned unchanged.
+    """
+    if features.kind != "mel" or features.num_frames == 0:
+        return features
+    energy = features.values.mean(1)
+    speech = energy >= np.percentile(energy, 95) - SPEAKER_NORM_RANGE
+    mean = features.values[speech].mean(0)
+    return AudioFeatures(
+        values=(features.values - mean).astype(np.float32),
+        rate=features.rate,
+        kind=features.kind,
+        duration_s=features.duration_s,
+    )
+
+
 def features_from_file(path: str | os.PathLike[str], kind: str = "phonemes", **kwargs: Any) -> AudioFeatures:
     """Speech features of an audio or video file's (first) audio track, mixed to mono at 16 kHz.
 

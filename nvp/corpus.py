@@ -62,14 +62,13 @@ def tracked_cached(video: Path, cache: Path, progress: bool = True) -> TrackedSe
 
 def features_cached(video: Path, cache: Path, kind: str, fps: float, num_frames: int) -> np.ndarray:
     """Feature windows ``(T, W, D)`` of the video's audio track, kept in ``cache/features``."""
-    from nvp.audio_features import features_from_file, frame_windows
+    from nvp.audio_features import features_from_file, frame_windows, speaker_normalized
 
-    path = cache / "features" / f"{video.stem}_{kind}_{fps:.3f}_{num_frames}.npy"
+    path = cache / "features" / f"{video.stem}_{kind}_{fps:.3f}_{num_frames}_sn.npy"
     if path.exists():
         return np.load(path)
-    windows = frame_windows(features_from_file(video, kind=kind), fps, num_frames=num_frames).astype(
-        np.float32
-    )
+    feats = speaker_normalized(features_from_file(video, kind=kind))
+    windows = frame_windows(feats, fps, num_frames=num_frames).astype(np.float32)
     path.parent.mkdir(parents=True, exist_ok=True)
     np.save(path, windows)
     return windows

@@ -86,9 +86,9 @@ def predict_expressions(
     num_frames: int | None = None,
 ) -> np.ndarray:
     """Expression coefficients ``(T, K_exp)`` for mono float32 audio, at ``fps`` video frames per second."""
-    from nvp.audio_features import extract_features, frame_windows
+    from nvp.audio_features import extract_features, frame_windows, speaker_normalized
     from nvp.train_audio2exp import audio_expressions
 
-    feats = extract_features(audio, sample_rate, kind=style.feature_kind)
+    feats = speaker_normalized(extract_features(audio, sample_rate, kind=style.feature_kind))
     windows = frame_windows(feats, fps, num_frames=num_frames).astype(np.float32)
     return style.person_map.apply(audio_expressions(net, windows))

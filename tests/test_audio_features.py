@@ -26,6 +26,7 @@ from nvp.audio_features import (
     num_video_frames,
     phoneme_labels,
     rms_envelope_db,
+    speaker_normalized,
     speech_activity,
 )
 from nvp.errors import MediaError, NvpError
@@ -353,3 +354,20 @@ def test_features_from_stereo_44k_wav(tmp_path):
 def test_features_from_missing_file(tmp_path):
     with pytest.raises(MediaError):
         features_from_file(tmp_path / "nope.wav", kind="mel")
+
+
+def test_speaker_normalisation_removes_a_channel_gain_and_keeps_silence_low():
+    rng = np.random.default_rng(0)
+    voice = (0.1 * rng.standard_normal(16000)).astype(np.float32)
+    audio = np.concatenate([voice, np.zeros(16000, np.float32)])
+    base = speaker_normalized(extract_features(audio, 16000, kind="mel"))
+    louder = speaker_normalized(extract_features(0.5 * audio, 16000, kind="mel"))
+    speech = slice(5, 95)  # frames of the noise burst (away from its edges)
+    np.testing.assert_allclose(louder.values[speech], base.values[speech], atol=1e-3)
+    assert abs(float(base.values[speech].mean())) < 0.1  # speech is centred
+    assert base.values[120:190].mean() < base.values[speech].mean() - 5  # silence stays far below speech
+
+
+def test_speaker_normalisation_leaves_phoneme_posteriors_alone():
+    f = AudioFeatures(values=np.full((10, 191), -3.0, np.float32), rate=50.0, kind="phonemes", duration_s=0.2)
+    assert speaker_normalized(f) is f
