@@ -635,3 +635,49 @@ def speech_activity(
     if len(env) < needed:  # shorter than min_active_s: all of it must be active
         return active == len(env)
     return active >= needed
+
+
+VOICE_THRESHOLD_DB = -50.0
+"""Absolute RMS level in dBFS below which a video frame is never voiced (:func:`voice_activity`)."""
+VOICE_RAMP_DB = 6.0
+"""Half-width in dB of the soft ramp of :func:`voice_activity` around its threshold."""
+VOICE_RELATIVE_DB = 45.0
+"""A frame counts as voiced only within this many dB of the file's loud end (95th percentile), so a
+recording with a high noise floor still has pauses."""
+VOICE_HOLD_S = 0.3
+"""Voice activity is held this long before and after every voiced frame: lips move before the sound
+starts and close after it ends, and pauses shorter than about twice this (breaths between phrases, when
+speakers often keep the mouth open) are left to the network. Chosen on the held-out validation videos:
+holds of 0.12 / 0.2 / 0.3 s lowered the mouth-opening correlation by 0.18 / 0.10 / 0.01."""
+
+
+def voice_activity(
+    audio: np.ndarray, sample_rate: int, fps: float, num_frames: int | None = None
+) -> np.ndarray:
+    """``(T,)`` float32 in [0, 1]: how much each video frame's audio is voice (1) or silence (0).
+
+    Per video frame (at ``i / fps`` s), the RMS level of the 40 ms around it (:func:`rms_envelope_db` on
+    20 ms blocks) is compared with ``max(VOICE_THRESHOLD_DB, p95 - VOICE_RELATIVE_DB)`` through a linear
+    ramp of +-:data:`VOICE_RAMP_DB`; then held (running maximum over +-:data:`VOICE_HOLD_S`) and
+    smoothed over 3 frames so that transitions take a few frames. ``T`` defaults to
+    :func:`num_video_frames` of the audio duration.
+    """
+    wav = _prepare_audio(audio, sample_rate)
+    t_count = num_video_frames(len(wav) / SAMPLE_RATE, fps) if num_frames is None else int(num_frames)
+    if t_count == 0:
+        return np.zeros(0, np.float32)
+    block_s = 0.02
+    env = rms_envelope_db(wav, SAMPLE_RATE, block_s)
+    centres = (np.arange(len(env)) + 0.5) * block_s
+    times = np.arange(t_count) / fps
+    # level of the ~40 ms around each frame: the louder of the two nearest blocks
+    idx = np.clip(np.searchsorted(centres, times), 0, len(env) - 1)
+    level = np.maximum(env[idx], env[np.maximum(idx - 1, 0)])
+    threshold = max(VOICE_THRESHOLD_DB, float(np.percentile(env, 95)) - VOICE_RELATIVE_DB)
+    act = np.clip((level - threshold) / (2 * VOICE_RAMP_DB) + 0.5, 0.0, 1.0)
+    hold = int(round(VOICE_HOLD_S * fps))
+    if hold:
+        padded = np.pad(act, hold, mode="edge")
+        act = np.lib.stride_tricks.sliding_window_view(padded, 2 * hold + 1).max(1)
+    act = np.convolve(np.pad(act, 1, mode="edge"), np.ones(3) / 3, mode="valid")
+    return act.astype(np.float32)

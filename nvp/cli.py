@@ -59,7 +59,7 @@ def _cmd_train_audio2exp(args: argparse.Namespace) -> int:
             print(f"skipping {v.name}: {e}", file=sys.stderr)
     train_set = [s for s in samples if s.name not in val_names]
     val_set = [s for s in samples if s.name in val_names]
-    cfg = TrainConfig(kind=args.features, steps=args.steps, seed=args.seed)
+    cfg = TrainConfig(kind=args.features, steps=args.steps, seed=args.seed, val_every=args.val_every)
     split = {
         "train": [s.name for s in train_set],
         "validation": [s.name for s in val_set],
@@ -84,17 +84,13 @@ def _cmd_train_audio2exp(args: argparse.Namespace) -> int:
 
 def _cmd_person_map(args: argparse.Namespace) -> int:
     from nvp.corpus import load_sample
-    from nvp.person import PersonStyle, default_audio2exp
-    from nvp.train_audio2exp import person_map_from_sample
+    from nvp.face_model import default_face_model
+    from nvp.person import default_audio2exp, style_from_sample
 
     net, manifest = default_audio2exp(args.features)
     cache = Path(args.cache) if args.cache else Path(args.output).parent / ".nvp-cache"
     sample = load_sample(Path(args.video), cache, args.features, progress=not args.quiet)
-    pmap = person_map_from_sample(net, sample)
-    style = PersonStyle(
-        pmap, args.features, manifest["sha256"], {"video": str(args.video), "frames": int(sample.valid.sum())}
-    )
-    js = style.save(Path(args.output))
+    js = style_from_sample(net, manifest, sample, default_face_model()).save(Path(args.output))
     print(f"person map from {int(sample.valid.sum())} frames → {js}")
     return 0
 
@@ -169,7 +165,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--val", nargs="*", help="file names of validation videos (default: 5 spread over the list)"
     )
     p.add_argument("--exclude", nargs="*", help="file names to leave out entirely")
-    p.add_argument("--steps", type=int, default=12000, help="optimisation steps")
+    p.add_argument("--steps", type=int, default=4000, help="optimisation steps")
+    p.add_argument(
+        "--val-every", type=int, default=250, help="steps between validations (the best model is kept)"
+    )
     p.add_argument("--seed", type=int, default=0, help="random seed")
     p.add_argument("--cache", type=Path, help="tracking/feature cache (default: OUTPUT/cache)")
     p.set_defaults(func=_cmd_train_audio2exp)

@@ -97,6 +97,12 @@ class FaceModel:
             return shape
         return shape + np.einsum("...k,kvc->...vc", exp_coeffs, self.exp_basis)
 
+    def inner_lip_gap(self, id_coeffs: np.ndarray, exp_coeffs: np.ndarray) -> np.ndarray:
+        """``(T,)`` distance (cm) between the inner-lip midpoints (vertices 13 and 14) for ``(T, K_exp)``."""
+        d = np.einsum("tk,kvc->tvc", exp_coeffs, self.exp_basis[:, [13, 14]])
+        v = self.vertices(id_coeffs)[[13, 14]] + d
+        return np.linalg.norm(v[:, 0] - v[:, 1], axis=-1)
+
     def face_width(self, id_coeffs: np.ndarray | None = None) -> float:
         """Width of the face (x extent of the face-oval landmarks), cm."""
         shape = self.template if id_coeffs is None else self.vertices(id_coeffs)

@@ -13,8 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
-from nvp.audio2exp import Audio2ExpressionNet, PersonMap
+from nvp.audio2exp import Audio2ExpressionNet, PersonMap, solve_person_map
+from nvp.corpus import VideoSample
 from nvp.errors import FormatError
+from nvp.face_model import FaceModel
 
 FORMAT_VERSION = 1
 ASSETS = Path(__file__).parent / "assets"
@@ -22,9 +24,20 @@ ASSETS = Path(__file__).parent / "assets"
 
 @dataclass(frozen=True)
 class PersonStyle:
-    """A person map plus what it was made with (the feature kind and the generic network's hash)."""
+    """A person's talking style: their map from the generic audio-expression space to their expression
+    coefficients, their mouth at rest, and what it was made with.
+
+    Attributes:
+        person_map: ``(K_exp, A)`` matrix and ``(K_exp,)`` bias.
+        rest_expression: ``(K_exp,)`` the person's closed, relaxed mouth (mean tracked expression of their
+            most closed frames); silence in new audio blends towards it (see :func:`predict_expressions`).
+        feature_kind: the speech features the map was solved with.
+        audio2exp_sha256: hash of the generic network's weights the map belongs to.
+        info: provenance (video, frames).
+    """
 
     person_map: PersonMap
+    rest_expression: np.ndarray
     feature_kind: str
     audio2exp_sha256: str
     info: dict
@@ -34,7 +47,7 @@ class PersonStyle:
         path = Path(path).with_suffix(".npz")
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(f".{path.stem}.tmp.npz")
-        np.savez(tmp, matrix=self.person_map.matrix, bias=self.person_map.bias)
+        np.savez(tmp, matrix=self.person_map.matrix, bias=self.person_map.bias, rest=self.rest_expression)
         os.replace(tmp, path)
         manifest = {
             "format": "nvp.person_map",
@@ -62,9 +75,10 @@ class PersonStyle:
                 )
             with np.load(js.parent / m["arrays"]) as z:
                 pm = PersonMap(matrix=z["matrix"], bias=z["bias"])
+                rest = z["rest"]
         except (OSError, ValueError, KeyError) as e:
             raise FormatError(f"cannot read person map {js}: {e}") from e
-        return cls(pm, m["feature_kind"], m["audio2exp_sha256"], m.get("info", {}))
+        return cls(pm, rest, m["feature_kind"], m["audio2exp_sha256"], m.get("info", {}))
 
 
 def default_audio2exp(kind: str = "phonemes") -> tuple[Audio2ExpressionNet, dict]:
@@ -77,6 +91,28 @@ def default_audio2exp(kind: str = "phonemes") -> tuple[Audio2ExpressionNet, dict
     return load_net(path)
 
 
+def rest_expression(expression: np.ndarray, gap: np.ndarray, fraction: float = 0.1) -> np.ndarray:
+    """``(K_exp,)`` mean of the expressions ``(T, K_exp)`` whose inner-lip gap ``(T,)`` is in the lowest
+    ``fraction`` (the person's closed, relaxed mouth)."""
+    n = max(1, int(round(fraction * len(gap))))
+    return expression[np.argsort(gap)[:n]].mean(0).astype(np.float32)
+
+
+def style_from_sample(
+    net: Audio2ExpressionNet, manifest: dict, sample: VideoSample, model: FaceModel, ridge: float = 10.0
+) -> PersonStyle:
+    """A person's style from their tracked video: closed-form map on all valid frames, rest expression."""
+    from nvp.train_audio2exp import audio_expressions
+
+    ok = sample.valid
+    pmap = solve_person_map(audio_expressions(net, sample.windows)[ok], sample.expression[ok], ridge)
+    gap = model.inner_lip_gap(sample.tracked.identity, sample.expression[ok])
+    info = {"video": sample.name, "frames": int(ok.sum()), "ridge": ridge}
+    return PersonStyle(
+        pmap, rest_expression(sample.expression[ok], gap), manifest["feature_kind"], manifest["sha256"], info
+    )
+
+
 def predict_expressions(
     audio: np.ndarray,
     sample_rate: int,
@@ -85,10 +121,17 @@ def predict_expressions(
     net: Audio2ExpressionNet,
     num_frames: int | None = None,
 ) -> np.ndarray:
-    """Expression coefficients ``(T, K_exp)`` for mono float32 audio, at ``fps`` video frames per second."""
-    from nvp.audio_features import extract_features, frame_windows, speaker_normalized
+    """Expression coefficients ``(T, K_exp)`` for mono audio, at ``fps`` video frames per second.
+
+    Speech features → generic network → person map; frames without voice (see
+    :func:`nvp.audio_features.voice_activity`) blend smoothly towards the person's rest expression, so
+    pauses and silence give a closed mouth.
+    """
+    from nvp.audio_features import extract_features, frame_windows, speaker_normalized, voice_activity
     from nvp.train_audio2exp import audio_expressions
 
     feats = speaker_normalized(extract_features(audio, sample_rate, kind=style.feature_kind))
     windows = frame_windows(feats, fps, num_frames=num_frames).astype(np.float32)
-    return style.person_map.apply(audio_expressions(net, windows))
+    expr = style.person_map.apply(audio_expressions(net, windows))
+    voice = voice_activity(audio, sample_rate, fps, len(expr))[:, None]
+    return (style.rest_expression + voice * (expr - style.rest_expression)).astype(np.float32)

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from nvp.audio2exp import Audio2ExpConfig, Audio2ExpressionNet, PersonMap, VertexMetric, solve_person_map
+from nvp.audio2exp import Audio2ExpConfig, Audio2ExpressionNet, VertexMetric, solve_person_map
 from nvp.corpus import VideoSample
 from nvp.errors import FormatError
 from nvp.face_model import FaceModel
@@ -40,7 +40,7 @@ class TrainConfig:
 
     kind: str = "phonemes"
     """Speech features: 'phonemes' (hama posteriors) or 'mel'."""
-    steps: int = 12000
+    steps: int = 4000
     """Optimisation steps."""
     batch: int = 64
     """Items per step (each item: three consecutive frames of one video)."""
@@ -60,7 +60,7 @@ class TrainConfig:
     """Ridge regularisation of closed-form person maps."""
     train_fraction: float = 0.8
     """Part of each validation video used to solve its person map; the rest is predicted."""
-    val_every: int = 1000
+    val_every: int = 250
     """Steps between validations (and checkpoints)."""
     seed: int = 0
     """Random seed (weights, batches)."""
@@ -96,11 +96,14 @@ def evaluate_person(
     audio_exp: np.ndarray | None,
     train_fraction: float = 0.8,
     ridge: float = 10.0,
+    voice: np.ndarray | None = None,
 ) -> dict[str, float]:
     """Person-specific evaluation on the held-out tail of one video.
 
     The person map is solved on the first ``train_fraction`` of the frames; the tail is predicted. With
-    ``audio_exp=None`` the prediction is the person's mean expression (baseline).
+    ``audio_exp=None`` the prediction is the person's mean expression (baseline). With ``voice`` ``(T,)``
+    (see :func:`nvp.audio_features.voice_activity`) unvoiced frames blend towards the person's rest
+    expression, as ``nvp.person.predict_expressions`` does.
 
     Returns mouth landmark error (projected lip vertices of predicted vs tracked mesh under the tracked
     pose, / interocular distance), lip vertex error (mm, object space), the correlation of predicted and
@@ -108,17 +111,23 @@ def evaluate_person(
     (closed: inner-lip gap below the person's closed level, ``min + 0.15 (p95 - min)`` of the tracked gap
     on the training part).
     """
+    from nvp.person import rest_expression
+
     seq = sample.tracked
     t_split = int(round(seq.num_frames * train_fraction))
     tr = np.flatnonzero(seq.valid[:t_split])
     te = t_split + np.flatnonzero(seq.valid[t_split:])
     if len(tr) < 10 or len(te) < 5:
         raise ValueError(f"{sample.name}: too few valid frames to evaluate ({len(tr)} train, {len(te)} test)")
+    gap_true_all = model.inner_lip_gap(seq.identity, seq.expression)
     if audio_exp is None:
         pred = np.broadcast_to(seq.expression[tr].mean(0), (len(te), model.num_exp))
     else:
         pmap = solve_person_map(audio_exp[tr], seq.expression[tr], ridge)
         pred = pmap.apply(audio_exp[te])
+        if voice is not None:
+            rest = rest_expression(seq.expression[tr], gap_true_all[tr])
+            pred = rest + voice[te, None] * (pred - rest)
     lips = np.flatnonzero(model.vertex_regions["lips"])
     v_pred = model.vertices(seq.identity, pred)
     v_true = model.vertices(seq.identity, seq.expression[te])
@@ -132,19 +141,14 @@ def evaluate_person(
     iod = interocular_distance(seq.landmarks[te], g["left_eye"], g["right_eye"])
     iod = np.where(np.isfinite(iod), iod, np.nanmedian(iod))
     mouth = (np.linalg.norm(px(v_pred[:, lips]) - px(v_true[:, lips]), axis=-1).mean(-1) / iod).mean()
-    gap_true_all = np.linalg.norm(
-        model.vertices(seq.identity, seq.expression)[:, 13]
-        - model.vertices(seq.identity, seq.expression)[:, 14],
-        axis=-1,
-    )
     lo, hi = gap_true_all[tr].min(), np.percentile(gap_true_all[tr], 95)
     thr = lo + 0.15 * (hi - lo)
-    gap_pred = np.linalg.norm(v_pred[:, 13] - v_pred[:, 14], axis=-1)
-    out = {"mouth_error_iod": float(mouth), "lip_vertex_error_mm": float(lip_mm)}
-    out.update(closure_f1(gap_pred, gap_true_all[te], thr))
+    gap_pred = model.inner_lip_gap(seq.identity, pred)
     gap_true = gap_true_all[te]
-    ok = gap_pred.std() > 1e-9 and gap_true.std() > 1e-9
-    out["opening_corr"] = float(np.corrcoef(gap_pred, gap_true)[0, 1]) if ok else 0.0
+    out = {"mouth_error_iod": float(mouth), "lip_vertex_error_mm": float(lip_mm)}
+    varies = audio_exp is not None and gap_pred.std() > 1e-6 and gap_true.std() > 1e-6
+    out["opening_corr"] = float(np.corrcoef(gap_pred, gap_true)[0, 1]) if varies else 0.0
+    out.update(closure_f1(gap_pred, gap_true, thr))
     out["test_frames"] = int(len(te))
     return out
 
@@ -334,9 +338,3 @@ def train(
             (out_dir / "log.json").write_text(json.dumps(log_rows, indent=2) + "\n")
     bar.close()
     return {"log": log_rows, "best_mouth_error_iod": best}
-
-
-def person_map_from_sample(net: Audio2ExpressionNet, sample: VideoSample, ridge: float = 10.0) -> PersonMap:
-    """Closed-form person map from a tracked video (all valid frames)."""
-    ae = audio_expressions(net, sample.windows)
-    return solve_person_map(ae[sample.valid], sample.expression[sample.valid], ridge)

@@ -371,3 +371,18 @@ def test_speaker_normalisation_removes_a_channel_gain_and_keeps_silence_low():
 def test_speaker_normalisation_leaves_phoneme_posteriors_alone():
     f = AudioFeatures(values=np.full((10, 191), -3.0, np.float32), rate=50.0, kind="phonemes", duration_s=0.2)
     assert speaker_normalized(f) is f
+
+
+def test_voice_activity_follows_speech_and_silence():
+    from nvp.audio_features import voice_activity
+
+    rng = np.random.default_rng(0)
+    audio = np.zeros(16000 * 4, np.float32)
+    audio[16000:32000] = 0.1 * rng.standard_normal(16000)  # 1 s of "speech" from t = 1 s
+    audio += 1e-4 * rng.standard_normal(len(audio)).astype(np.float32)  # room tone near -80 dBFS
+    v = voice_activity(audio, 16000, 25.0)
+    assert v.shape == (100,) and v.dtype == np.float32
+    assert v[30:45].min() == 1.0 and v[:10].max() == 0.0 and v[-40:].max() == 0.0
+    assert 0.0 <= v.min() and v.max() <= 1.0
+    assert voice_activity(np.zeros(8000, np.float32), 16000, 30.0).max() == 0.0
+    assert voice_activity(audio, 16000, 25.0, num_frames=7).shape == (7,)
