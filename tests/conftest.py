@@ -16,3 +16,12 @@ def face_model():
 @pytest.fixture(scope="session")
 def synthetic():
     return synthetic_sequence
+
+
+@pytest.fixture(scope="session")
+def demo_clip(tmp_path_factory):
+    """A 1.2 s, 256x256 talking clip (mp4 with audio) animated from the astronaut photo."""
+    from nvp.demo import make_demo_clip
+
+    path = tmp_path_factory.mktemp("demo") / "clip.mp4"
+    return make_demo_clip(path, seconds=1.2, size=256)

@@ -6,7 +6,6 @@ import subprocess
 import sys
 
 import numpy as np
-import pytest
 import soundfile as sf
 
 from nvp.media import VideoWriter, probe_video
@@ -57,14 +56,6 @@ def test_video_without_a_face(tmp_path):
     proc = nvp("track", path, "-o", tmp_path / "out")
     assert_one_line_error(proc, "no face")
     assert not (tmp_path / "out").exists()
-
-
-@pytest.fixture(scope="module")
-def demo_clip(tmp_path_factory):
-    from nvp.demo import make_demo_clip
-
-    path = tmp_path_factory.mktemp("demo") / "clip.mp4"
-    return make_demo_clip(path, seconds=1.2, size=256)
 
 
 def test_track_demo_clip_end_to_end(demo_clip, tmp_path):

@@ -1,0 +1,133 @@
+"""Person maps on disk, expression prediction for new audio, and the person-map / predict commands."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import soundfile as sf
+import torch
+from test_cli import assert_one_line_error, nvp
+
+from nvp.audio2exp import Audio2ExpConfig, Audio2ExpressionNet, PersonMap
+from nvp.errors import FormatError
+from nvp.person import PersonStyle, default_audio2exp, predict_expressions
+from nvp.train_audio2exp import load_net, save_net
+
+K = 64
+
+
+def _style(kind="mel", sha="0" * 64, seed=0):
+    rng = np.random.default_rng(seed)
+    pm = PersonMap(rng.normal(0, 0.1, (K, 32)).astype(np.float32), rng.normal(0, 0.1, K).astype(np.float32))
+    return PersonStyle(pm, rng.normal(0, 0.1, K).astype(np.float32), kind, sha, {"video": "x.mp4"})
+
+
+def test_person_style_round_trip(tmp_path):
+    style = _style()
+    js = style.save(tmp_path / "style")
+    assert js.name == "style.json" and (tmp_path / "style.npz").exists()
+    assert not list(tmp_path.glob(".*tmp*"))  # no temporary files left behind
+    back = PersonStyle.load(js)
+    np.testing.assert_array_equal(back.person_map.matrix, style.person_map.matrix)
+    np.testing.assert_array_equal(back.person_map.bias, style.person_map.bias)
+    np.testing.assert_array_equal(back.rest_expression, style.rest_expression)
+    assert (back.feature_kind, back.audio2exp_sha256, back.info) == ("mel", "0" * 64, {"video": "x.mp4"})
+
+
+def test_person_style_rejects_bad_files(tmp_path):
+    with pytest.raises(FormatError, match="cannot read person map"):
+        PersonStyle.load(tmp_path / "missing.json")
+    (tmp_path / "other.json").write_text(json.dumps({"format": "something else", "version": 1}))
+    with pytest.raises(FormatError, match="expected nvp.person_map"):
+        PersonStyle.load(tmp_path / "other.json")
+
+
+def test_input_standardisation_is_saved_with_the_weights(tmp_path):
+    net = Audio2ExpressionNet(Audio2ExpConfig(feature_dim=80))
+    feats = torch.randn(500, 80) * 3 - 10
+    net.per_frame.set_input_stats(feats)
+    torch.testing.assert_close(net.per_frame.input_mean, feats.mean(0), atol=1e-4, rtol=0)
+    save_net(net, tmp_path / "m", {"feature_kind": "mel"})
+    back, _ = load_net(tmp_path / "m.json")
+    torch.testing.assert_close(back.per_frame.input_std, net.per_frame.input_std)
+
+
+@pytest.mark.parametrize("fps", [25.0, 30000 / 1001])
+def test_predict_expressions_has_one_row_per_video_frame(fps):
+    net = Audio2ExpressionNet(Audio2ExpConfig(feature_dim=80)).eval()
+    audio = (0.1 * np.sin(np.linspace(0, 2000, 44100 * 2))).astype(np.float32)
+    expr = predict_expressions(audio, 44100, fps, _style(), net)
+    assert expr.shape == (int(np.ceil(2.0 * fps)), K) and np.isfinite(expr).all()
+    assert predict_expressions(audio, 44100, fps, _style(), net, num_frames=10).shape == (10, K)
+
+
+def test_silence_gives_the_rest_expression_and_speech_does_not():
+    net = Audio2ExpressionNet(Audio2ExpConfig(feature_dim=80)).eval()
+    style = _style()
+    rng = np.random.default_rng(1)
+    speech = (0.2 * rng.standard_normal(16000 * 2)).astype(np.float32)
+    audio = np.concatenate([np.zeros(16000 * 2, np.float32), speech, np.zeros(16000 * 2, np.float32)])
+    expr = predict_expressions(audio, 16000, 25.0, style, net)
+    assert expr.shape == (150, K)
+    np.testing.assert_allclose(expr[:40], np.broadcast_to(style.rest_expression, (40, K)), atol=1e-6)
+    np.testing.assert_allclose(expr[-40:], np.broadcast_to(style.rest_expression, (40, K)), atol=1e-6)
+    assert np.abs(expr[60:90] - style.rest_expression).max() > 1e-3  # speech is driven by the network
+    steps = np.abs(np.diff(expr, axis=0)).max(1)
+    assert steps.max() < 0.6 * np.abs(expr - style.rest_expression).max()  # no jump at the transitions
+
+
+def test_rest_expression_is_the_most_closed_frames():
+    from nvp.person import rest_expression
+
+    expr = np.arange(20, dtype=np.float32)[:, None] * np.ones((1, 3), np.float32)
+    gap = np.arange(20, 0, -1, dtype=np.float32)
+    np.testing.assert_allclose(rest_expression(expr, gap, fraction=0.1), [18.5, 18.5, 18.5])
+
+
+@pytest.mark.parametrize("kind", ["phonemes", "mel"])
+def test_shipped_networks_load_with_provenance(kind):
+    net, manifest = default_audio2exp(kind)
+    assert manifest["feature_kind"] == kind
+    assert net.cfg.feature_dim == (191 if kind == "phonemes" else 80)
+    assert len(manifest["split"]["validation"]) >= 5
+    assert not set(manifest["split"]["validation"]) & set(manifest["split"]["train"])
+    assert manifest["validation"]["mouth_error_iod"] > 0
+    assert len(manifest["sha256"]) == 64
+
+
+def test_person_map_and_predict_commands(demo_clip, tmp_path):
+    proc = nvp(
+        "person-map", demo_clip.path, "-o", tmp_path / "style", "--features", "mel", "--cache", tmp_path
+    )
+    assert proc.returncode == 0, proc.stderr
+    style = PersonStyle.load(tmp_path / "style.json")
+    assert style.feature_kind == "mel" and np.isfinite(style.person_map.matrix).all()
+    wav = tmp_path / "speech.wav"
+    sf.write(wav, (0.2 * np.random.default_rng(0).standard_normal((48000, 2))).astype(np.float32), 48000)
+    track = tmp_path / "tracks" / demo_clip.path.stem
+    proc = nvp(
+        "predict",
+        wav,
+        "--style",
+        tmp_path / "style.json",
+        "--fps",
+        30,
+        "--mesh",
+        track,
+        "-o",
+        tmp_path / "p.npz",
+    )
+    assert proc.returncode == 0, proc.stderr
+    with np.load(tmp_path / "p.npz") as z:
+        assert z["expression"].shape == (30, K)
+        assert z["vertices"].shape[:2] == (30, 468) and z["triangles"].shape[1] == 3
+
+
+def test_predict_rejects_a_map_made_with_another_network(tmp_path):
+    _style(kind="mel", sha="f" * 64).save(tmp_path / "style")
+    sf.write(tmp_path / "a.wav", np.zeros(16000, np.float32), 16000)
+    proc = nvp("predict", tmp_path / "a.wav", "--style", tmp_path / "style.json", "-o", tmp_path / "p.npz")
+    assert_one_line_error(proc, "another audio2expressionnet")
+    assert not (tmp_path / "p.npz").exists()
