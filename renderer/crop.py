@@ -1,0 +1,101 @@
+"""Face crops stabilised by the tracked pose: where to cut, how to cut, and how to paste back.
+
+A crop is a square box ``(cx, cy, side)`` in full-frame pixels, resampled to ``size × size``. Boxes follow
+the projected face-model vertices, smoothed over time (centre lightly, size strongly) so the crop neither
+jitters nor lags the head. The camera of a crop is the frame's camera scaled and shifted, so the mesh can
+be rasterized directly at crop resolution.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+
+def _gaussian_smooth(x: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian smoothing along axis 0 with edge padding; ``sigma`` in samples (0 = unchanged)."""
+    if sigma <= 0 or len(x) < 2:
+        return x.copy()
+    r = int(np.ceil(3 * sigma))
+    k = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma) ** 2)
+    k /= k.sum()
+    pad = np.concatenate([np.repeat(x[:1], r, 0), x, np.repeat(x[-1:], r, 0)])
+    return np.stack([np.convolve(pad[:, j], k, mode="valid") for j in range(x.shape[1])], 1)
+
+
+def crop_boxes(
+    points: np.ndarray, scale: float = 1.6, center_sigma: float = 1.5, size_sigma: float = 8.0
+) -> np.ndarray:
+    """Square crop boxes ``(T, 3)`` = ``(cx, cy, side)`` in pixels around per-frame 2D points.
+
+    Args:
+        points: ``(T, V, 2)`` projected face vertices (pixels).
+        scale: box side relative to the larger extent of the points (room for hair, chin and neck).
+        center_sigma, size_sigma: temporal Gaussian smoothing (frames) of the centre and of the side.
+    """
+    lo, hi = points.min(1), points.max(1)
+    center = (lo + hi) / 2
+    side = (hi - lo).max(1, keepdims=True) * scale
+    # the mesh stops at the hairline and chin: shift the box down a little to include the chin and jaw
+    center = center + np.array([0.0, 0.05]) * side
+    return np.concatenate([_gaussian_smooth(center, center_sigma), _gaussian_smooth(side, size_sigma)], 1)
+
+
+def crop_camera(focal: float, center: np.ndarray, box: np.ndarray, size: int) -> tuple[float, np.ndarray]:
+    """Focal length and principal point of the camera seeing the crop ``box`` at ``size × size``."""
+    s = size / box[2]
+    origin = box[:2] - box[2] / 2
+    return float(focal * s), ((np.asarray(center) - origin) * s).astype(np.float32)
+
+
+def _sample_grid(boxes: torch.Tensor, size: int, height: int, width: int) -> torch.Tensor:
+    """``grid_sample`` grid ``(B, size, size, 2)`` reading each box from a ``height × width`` image."""
+    t = (torch.arange(size, dtype=torch.float32, device=boxes.device) + 0.5) / size - 0.5  # -0.5 .. 0.5
+    x = boxes[:, 0, None] + boxes[:, 2, None] * t[None]  # (B, S) pixel x of each crop column
+    y = boxes[:, 1, None] + boxes[:, 2, None] * t[None]
+    gx = (2 * x / width - 1)[:, None, :].expand(-1, size, -1)
+    gy = (2 * y / height - 1)[:, :, None].expand(-1, -1, size)
+    return torch.stack([gx, gy], -1)
+
+
+def cut(frames: torch.Tensor, boxes: torch.Tensor, size: int) -> torch.Tensor:
+    """Crops ``(B, C, size, size)`` of ``frames`` ``(B, C, H, W)`` at ``boxes`` ``(B, 3)`` (bilinear; the
+    border is replicated where a box leaves the frame)."""
+    grid = _sample_grid(boxes.float(), size, frames.shape[2], frames.shape[3])
+    return F.grid_sample(frames.float(), grid, mode="bilinear", padding_mode="border", align_corners=False)
+
+
+def feather(size: int, border: float = 0.08, device: str | torch.device = "cpu") -> torch.Tensor:
+    """``(1, 1, size, size)`` blend weights: 1 inside, falling smoothly to 0 over ``border`` of the side at
+    the crop's edges, so a pasted crop has no visible seam."""
+    t = (torch.arange(size, dtype=torch.float32, device=device) + 0.5) / size
+    d = torch.minimum(t, 1 - t) / border
+    w = torch.clamp(d, 0, 1)
+    w = w * w * (3 - 2 * w)  # smoothstep
+    return (w[:, None] * w[None, :])[None, None]
+
+
+def paste(frame: torch.Tensor, crop: torch.Tensor, box: np.ndarray, weight: torch.Tensor) -> torch.Tensor:
+    """Blend ``crop`` ``(C, S, S)`` back into ``frame`` ``(C, H, W)`` (both float) at ``box``.
+
+    Only the frame pixels under the box are resampled (from the crop, bilinear) and blended with
+    ``weight`` ``(1, 1, S, S)``; returns a new frame.
+    """
+    _, h, w = frame.shape
+    s = crop.shape[-1]
+    cx, cy, side = (float(v) for v in box)
+    x0, x1 = max(int(np.floor(cx - side / 2)), 0), min(int(np.ceil(cx + side / 2)), w)
+    y0, y1 = max(int(np.floor(cy - side / 2)), 0), min(int(np.ceil(cy + side / 2)), h)
+    out = frame.clone()
+    if x1 <= x0 or y1 <= y0:
+        return out
+    # frame pixel centres of the region, in normalised crop coordinates
+    xs = ((torch.arange(x0, x1, dtype=torch.float32) + 0.5 - cx) / side) * 2
+    ys = ((torch.arange(y0, y1, dtype=torch.float32) + 0.5 - cy) / side) * 2
+    grid = torch.stack(torch.meshgrid(xs, ys, indexing="xy"), -1)[None].to(crop.device)
+    both = torch.cat([crop[None].float(), weight.expand(1, 1, s, s)], 1)
+    sampled = F.grid_sample(both, grid, mode="bilinear", padding_mode="zeros", align_corners=False)[0]
+    rgb, a = sampled[:-1], sampled[-1:]
+    out[:, y0:y1, x0:x1] = a * rgb + (1 - a) * frame[:, y0:y1, x0:x1]
+    return out

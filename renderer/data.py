@@ -1,0 +1,228 @@
+"""Per-frame renderer inputs: stabilised crops of the footage and the face model rasterized into them.
+
+``FrameGeometry`` holds what the networks need for one crop (UV, coverage, mouth interior); it is made the
+same way for training (tracked expressions) and for dubbing (expressions from audio). ``FrameCache``
+holds the training frames, decoded once and kept compact (uint8 crops, float16 UVs).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from tqdm import tqdm
+
+from nvp.face_model import FaceModel
+from nvp.tracked import TrackedSequence
+from renderer.crop import crop_boxes, crop_camera, cut
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Preset:
+    """Resolution and network size of a renderer, plus its default training length."""
+
+    name: str
+    crop: int
+    """Side in pixels of the face crop the networks render (divisible by 16)."""
+    base: int
+    """U-Net base feature channels."""
+    dilated: bool
+    """Dilated stride-1 U-Nets (the paper; GPU) instead of strided ones (CPU)."""
+    texture_size: int
+    """Neural texture resolution (16 channels)."""
+    steps: int
+    """Default training steps."""
+    batch: int
+    """Crops per training step."""
+
+
+PRESETS = {
+    "cpu": Preset("cpu", crop=192, base=16, dilated=False, texture_size=256, steps=8000, batch=2),
+    "quality": Preset("quality", crop=256, base=32, dilated=False, texture_size=256, steps=12000, batch=4),
+    "paper": Preset("paper", crop=256, base=32, dilated=True, texture_size=256, steps=50000, batch=1),
+}
+
+
+def get_preset(name: str) -> Preset:
+    from nvp.errors import NvpError
+
+    if name not in PRESETS:
+        raise NvpError(f"unknown renderer preset {name!r}; choose one of {', '.join(PRESETS)}")
+    return PRESETS[name]
+
+
+@dataclass
+class FrameGeometry:
+    """The face model rasterized into a batch of crops.
+
+    Attributes:
+        uv: ``(B, S, S, 2)`` float32 texture coordinates (0 outside the mesh).
+        mask: ``(B, 1, S, S)`` float32 1 where the mesh covers the pixel.
+        mouth: ``(B, 1, S, S)`` float32 1 on the mouth-interior triangles.
+        region: ``(B, 1, S, S)`` float32 1 on the face region blanked in the background input (see
+            :func:`face_region`).
+    """
+
+    uv: torch.Tensor
+    mask: torch.Tensor
+    mouth: torch.Tensor
+    region: torch.Tensor
+
+
+def camera_vertices(
+    model: FaceModel, seq: TrackedSequence, frames: np.ndarray, expression: np.ndarray
+) -> np.ndarray:
+    """``(B, V, 3)`` camera-frame vertices of ``expression`` ``(B, K_exp)`` under the pose of ``frames``."""
+    v = model.vertices(seq.identity, expression)
+    return np.einsum("bij,bvj->bvi", seq.rotation[frames], v) + seq.translation[frames, None]
+
+
+def sequence_boxes(model: FaceModel, seq: TrackedSequence) -> np.ndarray:
+    """``(T, 3)`` crop boxes of a whole tracked sequence (from its tracked geometry)."""
+    v = camera_vertices(model, seq, np.arange(seq.num_frames), seq.expression)
+    pts = seq.focal * v[..., :2] / v[..., 2:] + seq.center
+    return crop_boxes(pts)
+
+
+class Rasterizer:
+    """Rasterizes face-model vertices into crops (moderngl), returning ``FrameGeometry``."""
+
+    def __init__(self, model: FaceModel, size: int) -> None:
+        from renderer.gl import GLRasterizer
+        from renderer.raster import empty_output
+
+        self.model, self.size = model, size
+        self._gl = GLRasterizer(size, size)
+        self._out = empty_output(size, size)
+        self._mouth_tris = torch.from_numpy(np.flatnonzero(model.triangle_regions["mouth_interior"]))
+
+    def close(self) -> None:
+        self._gl.release()
+
+    def __call__(
+        self, vertices_cam: np.ndarray, focal: float, center: np.ndarray, box: np.ndarray
+    ) -> FrameGeometry:
+        """Geometry of one crop: ``vertices_cam`` ``(V, 3)``, the frame camera and the crop ``box``."""
+        f, c = crop_camera(focal, center, box, self.size)
+        r = self._gl.rasterize(
+            vertices_cam.astype(np.float32), self.model.triangles, self.model.uvs, f, c, out=self._out
+        )
+        mouth = torch.isin(r.triangle_id, self._mouth_tris)
+        mask = r.mask.float()[None, None]
+        return FrameGeometry(
+            uv=r.uv.clone()[None], mask=mask, mouth=mouth.float()[None, None], region=face_region(mask)
+        )
+
+
+def face_region(mask: torch.Tensor, grow: float = 0.06) -> torch.Tensor:
+    """``mask`` ``(B, 1, S, S)`` grown by ``grow`` of the crop side: the part of the footage that the
+    renderer replaces (pass the union of the old and new masks when the geometry changes)."""
+    r = max(1, int(round(grow * mask.shape[-1])))
+    return F.max_pool2d(mask, 2 * r + 1, stride=1, padding=r)
+
+
+def blank_face(crops: torch.Tensor, region: torch.Tensor) -> torch.Tensor:
+    """The background input: ``crops`` ``(B, 3, S, S)`` with ``region`` ``(B, 1, S, S)`` set to 0, so the
+    original mouth and chin cannot leak through."""
+    return crops * (1 - region)
+
+
+@dataclass
+class FrameCache:
+    """Training frames at crop resolution.
+
+    Attributes:
+        frames: ``(N,)`` frame indices in the tracked sequence.
+        crops: ``(N, S, S, 3)`` uint8 footage crops.
+        uv: ``(N, S, S, 2)`` float16; mask, mouth, region: ``(N, S, S)`` bool.
+        boxes: ``(N, 3)`` crop boxes.
+    """
+
+    frames: np.ndarray
+    crops: np.ndarray
+    uv: np.ndarray
+    mask: np.ndarray
+    mouth: np.ndarray
+    region: np.ndarray
+    boxes: np.ndarray
+
+    def batch(
+        self, idx: np.ndarray, device: str | torch.device = "cpu"
+    ) -> tuple[torch.Tensor, FrameGeometry]:
+        """Crops ``(B, 3, S, S)`` float in [0, 1] and their geometry for cache rows ``idx``."""
+        crops = torch.from_numpy(self.crops[idx]).permute(0, 3, 1, 2).float().div(255)
+        geo = FrameGeometry(
+            uv=torch.from_numpy(self.uv[idx].astype(np.float32)).to(device),
+            mask=torch.from_numpy(self.mask[idx])[:, None].float().to(device),
+            mouth=torch.from_numpy(self.mouth[idx])[:, None].float().to(device),
+            region=torch.from_numpy(self.region[idx])[:, None].float().to(device),
+        )
+        return crops.to(device), geo
+
+    def save(self, path: Path) -> None:
+        tmp = path.with_name(path.stem + ".tmp.npz")
+        np.savez(
+            tmp,
+            **{k: getattr(self, k) for k in ("frames", "crops", "uv", "mask", "mouth", "region", "boxes")},
+        )
+        tmp.replace(path)
+
+    @classmethod
+    def load(cls, path: Path) -> FrameCache:
+        with np.load(path) as z:
+            return cls(**{k: z[k] for k in z.files})
+
+
+def build_cache(
+    video: Path,
+    seq: TrackedSequence,
+    model: FaceModel,
+    preset: Preset,
+    frames: np.ndarray,
+    progress: bool = True,
+) -> FrameCache:
+    """Decode ``video`` once and keep the crops and geometry of ``frames`` (valid tracked frames)."""
+    from nvp.media import iter_frames
+
+    frames = np.asarray(sorted(int(f) for f in frames if seq.valid[f]))
+    s = preset.crop
+    boxes = sequence_boxes(model, seq)
+    n = len(frames)
+    cache = FrameCache(
+        frames=frames,
+        crops=np.empty((n, s, s, 3), np.uint8),
+        uv=np.empty((n, s, s, 2), np.float16),
+        mask=np.empty((n, s, s), bool),
+        mouth=np.empty((n, s, s), bool),
+        region=np.empty((n, s, s), bool),
+        boxes=boxes[frames].astype(np.float32),
+    )
+    row = {int(f): i for i, f in enumerate(frames)}
+    rast = Rasterizer(model, s)
+    last = int(frames.max()) + 1 if n else 0
+    try:
+        bar = tqdm(total=n, desc="prepare renderer frames", disable=not progress, unit="frame")
+        for t, img in enumerate(iter_frames(video, fps=seq.fps, max_frames=last)):
+            i = row.get(t)
+            if i is None:
+                continue
+            frame = torch.from_numpy(img).permute(2, 0, 1)[None]
+            crop = cut(frame, torch.from_numpy(boxes[t : t + 1]).float(), s)[0]
+            cache.crops[i] = crop.clamp(0, 255).round().byte().permute(1, 2, 0).numpy()
+            v = camera_vertices(model, seq, np.array([t]), seq.expression[t : t + 1])[0]
+            g = rast(v, seq.focal, seq.center, boxes[t])
+            cache.uv[i] = g.uv[0].numpy().astype(np.float16)
+            cache.mask[i] = g.mask[0, 0].numpy() > 0.5
+            cache.mouth[i] = g.mouth[0, 0].numpy() > 0.5
+            cache.region[i] = g.region[0, 0].numpy() > 0.5
+            bar.update(1)
+        bar.close()
+    finally:
+        rast.close()
+    return cache

@@ -1,0 +1,119 @@
+"""Deferred neural rendering modules: the neural texture and the U-Nets (thin ``nn.Module``s).
+
+Thies et al. 2019/2020: a learned 16-channel texture is sampled by the rasterized UVs; a U-Net turns the
+sampled features into the face interior; a second U-Net of the same structure takes that render and the
+background (6 channels) and outputs the final image, inpainting the seam.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+
+class NeuralTexture(nn.Module):
+    """``C × N × N`` learned features, sampled bilinearly by UV.
+
+    UVs follow the face model (u right, v down, both in [0, 1]); pixels outside the mesh get zeros.
+    """
+
+    def __init__(self, channels: int = 16, size: int = 256) -> None:
+        super().__init__()
+        self.texture = nn.Parameter(torch.zeros(1, channels, size, size))
+
+    def forward(self, uv: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """``(B, C, H, W)`` features for ``uv`` ``(B, H, W, 2)`` and ``mask`` ``(B, 1, H, W)``."""
+        grid = uv * 2 - 1
+        tex = self.texture.expand(uv.shape[0], -1, -1, -1)
+        return F.grid_sample(tex, grid, mode="bilinear", padding_mode="border", align_corners=False) * mask
+
+
+@dataclass(frozen=True)
+class UNetConfig:
+    """Structure of a U-Net (both networks of a preset share it)."""
+
+    base: int = 32
+    """Feature channels of the first level; doubled per level up to 8×."""
+    depth: int = 5
+    """Number of levels."""
+    dilated: bool = False
+    """True: stride-1 convolutions with dilation doubling per level (the paper, needs a GPU); False:
+    stride-2 downsampling and bilinear upsampling (the CPU presets)."""
+
+
+def _level_channels(cfg: UNetConfig) -> list[int]:
+    return [cfg.base * min(2**i, 8) for i in range(cfg.depth)]
+
+
+class UNet(nn.Module):
+    """U-Net of ``depth`` levels with skip connections, 3×3 convolutions and leaky ReLU 0.2.
+
+    ``(B, in_ch, H, W) → (B, out_ch, H, W)`` in [0, 1] (sigmoid). For the strided variant ``H`` and ``W``
+    must be divisible by ``2 ** (depth - 1)``.
+    """
+
+    def __init__(self, in_ch: int, out_ch: int, cfg: UNetConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        ch = _level_channels(cfg)
+        act = nn.LeakyReLU(0.2, inplace=True)
+        self.down = nn.ModuleList()
+        c_prev = in_ch
+        for i, c in enumerate(ch):
+            if cfg.dilated:
+                d = 2**i
+                conv = nn.Conv2d(c_prev, c, 3, padding=d, dilation=d)
+            else:
+                conv = nn.Conv2d(c_prev, c, 3, stride=1 if i == 0 else 2, padding=1)
+            self.down.append(nn.Sequential(conv, act))
+            c_prev = c
+        self.up = nn.ModuleList()
+        for i in range(cfg.depth - 2, -1, -1):
+            d = 2**i if cfg.dilated else 1
+            self.up.append(nn.Sequential(nn.Conv2d(c_prev + ch[i], ch[i], 3, padding=d, dilation=d), act))
+            c_prev = ch[i]
+        self.out = nn.Conv2d(c_prev, out_ch, 3, padding=1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        skips = []
+        for layer in self.down:
+            x = layer(x)
+            skips.append(x)
+        skips.pop()
+        for layer in self.up:
+            skip = skips.pop()
+            if x.shape[-2:] != skip.shape[-2:]:
+                x = F.interpolate(x, size=skip.shape[-2:], mode="bilinear", align_corners=False)
+            x = layer(torch.cat([x, skip], 1))
+        return torch.sigmoid(self.out(x))
+
+
+class NeuralRenderer(nn.Module):
+    """Texture + interior U-Net + compositing U-Net.
+
+    Inputs per crop: ``uv`` ``(B, H, W, 2)``, ``mask`` ``(B, 1, H, W)`` (face mesh coverage), ``mouth``
+    ``(B, 1, H, W)`` (mouth-interior triangles, so the network knows where teeth and tongue go) and
+    ``background`` ``(B, 3, H, W)`` (the frame with the face region blanked). Returns the interior render
+    and the final image, both ``(B, 3, H, W)`` in [0, 1].
+    """
+
+    def __init__(self, unet: UNetConfig, texture_channels: int = 16, texture_size: int = 256) -> None:
+        super().__init__()
+        self.texture = NeuralTexture(texture_channels, texture_size)
+        self.interior = UNet(texture_channels + 2, 3, unet)
+        self.composite = UNet(6 + 1, 3, unet)
+
+    def forward(
+        self, uv: torch.Tensor, mask: torch.Tensor, mouth: torch.Tensor, background: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        feats = self.texture(uv, mask)
+        interior = self.interior(torch.cat([feats, mask, mouth], 1)) * mask
+        final = self.composite(torch.cat([interior, background, mask], 1))
+        return interior, final
+
+
+def count_parameters(module: nn.Module) -> int:
+    return sum(p.numel() for p in module.parameters())

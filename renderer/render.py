@@ -1,0 +1,64 @@
+"""Rendering new geometry into the footage: crop → rasterize → neural render → paste back."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from nvp.face_model import FaceModel
+from nvp.tracked import TrackedSequence
+from renderer.crop import cut, feather, paste
+from renderer.data import Rasterizer, blank_face, sequence_boxes
+from renderer.train import load_renderer
+
+
+class FrameRenderer:
+    """Renders face-model geometry into frames of the footage a renderer was trained on.
+
+    Args:
+        renderer_dir: folder with ``renderer.{json,npz}``.
+        model: the face model.
+        seq: the footage's tracking (camera, per-frame crop boxes).
+        device: torch device of the networks.
+
+    Use as a context manager (it owns an OpenGL context).
+    """
+
+    def __init__(
+        self, renderer_dir: Path, model: FaceModel, seq: TrackedSequence, device: str = "cpu"
+    ) -> None:
+        self.net, self.preset, self.manifest = load_renderer(renderer_dir, device)
+        self.model, self.seq, self.device = model, seq, device
+        self.boxes = sequence_boxes(model, seq)
+        self.raster = Rasterizer(model, self.preset.crop)
+        self.weight = feather(self.preset.crop)
+
+    def __enter__(self) -> FrameRenderer:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.raster.close()
+
+    @torch.inference_mode()
+    def render(
+        self, frame: np.ndarray, index: int, vertices_cam: np.ndarray, original_cam: np.ndarray | None = None
+    ) -> np.ndarray:
+        """Frame ``index`` of the footage (``(H, W, 3)`` uint8) with the face replaced by a render of
+        ``vertices_cam`` ``(V, 3)``; ``original_cam`` (the tracked geometry of that frame) widens the
+        replaced region so the original mouth and chin are covered too. Returns ``(H, W, 3)`` uint8."""
+        box = self.boxes[index]
+        f, c = self.seq.focal, self.seq.center
+        geo = self.raster(vertices_cam, f, c, box)
+        region = geo.region
+        if original_cam is not None:
+            region = torch.maximum(region, self.raster(original_cam, f, c, box).region)
+        img = torch.from_numpy(frame).permute(2, 0, 1).float()
+        crop = cut(img[None], torch.from_numpy(box[None]).float(), self.preset.crop) / 255
+        dev = self.device
+        _, final = self.net(
+            geo.uv.to(dev), geo.mask.to(dev), geo.mouth.to(dev), blank_face(crop.to(dev), region.to(dev))
+        )
+        out = paste(img, final[0].cpu() * 255, box, self.weight)
+        return out.clamp(0, 255).round().byte().permute(1, 2, 0).numpy()

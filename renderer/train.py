@@ -1,0 +1,197 @@
+"""Training the neural renderer on one person's footage (resumable, seeded, time-budgeted).
+
+Losses (pure functions): L1 on the final image, masked L1 on the interior render, and a structural term
+(1 - SSIM, kornia) that needs no downloaded weights.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from nvp.errors import FormatError
+from renderer.data import FrameCache, Preset, blank_face, get_preset
+from renderer.networks import NeuralRenderer, UNetConfig, count_parameters
+
+log = logging.getLogger(__name__)
+FORMAT = "nvp.renderer"
+FORMAT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Renderer training settings (saved with the weights)."""
+
+    preset: str = "cpu"
+    """Resolution / network size preset (``renderer.data.PRESETS``)."""
+    steps: int | None = None
+    """Optimisation steps; None = the preset's default."""
+    budget_s: float | None = None
+    """Stop (and save) after this many seconds of training, whatever ``steps`` says."""
+    lr: float = 1e-3
+    """Adam learning rate (networks and texture)."""
+    ssim_weight: float = 0.5
+    """Weight of the 1 - SSIM term."""
+    interior_weight: float = 1.0
+    """Weight of the masked L1 term on the interior render."""
+    checkpoint_every: int = 250
+    """Steps between checkpoints."""
+    preview_every: int = 500
+    """Steps between preview PNGs (ground truth | interior | final)."""
+    seed: int = 0
+    """Random seed (initial weights, batches)."""
+
+
+def l1_masked(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Mean absolute error over the pixels where ``mask`` ``(B, 1, H, W)`` is 1."""
+    return ((pred - target).abs() * mask).sum() / (mask.sum() * pred.shape[1]).clamp_min(1.0)
+
+
+def renderer_loss(
+    interior: torch.Tensor, final: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, cfg: TrainConfig
+) -> torch.Tensor:
+    """L1(final) + w_i · masked L1(interior) + w_s · (1 - SSIM(final)) for images ``(B, 3, H, W)``."""
+    from kornia.losses import ssim_loss
+
+    loss = (final - target).abs().mean() + cfg.interior_weight * l1_masked(interior, target, mask)
+    return loss + cfg.ssim_weight * 2 * ssim_loss(final, target, window_size=7)
+
+
+def make_renderer(preset: Preset) -> NeuralRenderer:
+    return NeuralRenderer(
+        UNetConfig(base=preset.base, dilated=preset.dilated), texture_size=preset.texture_size
+    )
+
+
+def save_renderer(net: NeuralRenderer, out_dir: Path, preset: Preset, info: dict) -> Path:
+    """Write ``renderer.npz`` (weights) and ``renderer.json`` (format, preset, provenance) atomically."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    tmp = out_dir / ".renderer.tmp.npz"
+    np.savez(tmp, **{k: v.detach().cpu().numpy() for k, v in net.state_dict().items()})
+    os.replace(tmp, out_dir / "renderer.npz")
+    manifest = {"format": FORMAT, "version": FORMAT_VERSION, "preset": asdict(preset), **info}
+    tmpj = out_dir / ".renderer.tmp.json"
+    tmpj.write_text(json.dumps(manifest, indent=2) + "\n")
+    os.replace(tmpj, out_dir / "renderer.json")
+    return out_dir / "renderer.json"
+
+
+def load_renderer(out_dir: Path, device: str = "cpu") -> tuple[NeuralRenderer, Preset, dict]:
+    js = Path(out_dir) / "renderer.json"
+    try:
+        m = json.loads(js.read_text())
+        if m.get("format") != FORMAT or m.get("version") != FORMAT_VERSION:
+            raise FormatError(
+                f"{js}: expected {FORMAT} version {FORMAT_VERSION}, "
+                f"found {m.get('format')} {m.get('version')}"
+            )
+        preset = Preset(**m["preset"])
+        net = make_renderer(preset)
+        with np.load(js.parent / "renderer.npz") as z:
+            net.load_state_dict({k: torch.from_numpy(z[k]) for k in z.files})
+    except (OSError, ValueError, KeyError, RuntimeError) as e:
+        raise FormatError(f"cannot load renderer from {out_dir}: {e}") from e
+    return net.to(device).eval(), preset, m
+
+
+def _preview(path: Path, target: torch.Tensor, interior: torch.Tensor, final: torch.Tensor) -> None:
+    from PIL import Image
+
+    row = torch.cat([target[0], interior[0], final[0]], 2).clamp(0, 1)
+    Image.fromarray((row.permute(1, 2, 0).detach().cpu().numpy() * 255).round().astype(np.uint8)).save(path)
+
+
+def train_renderer(
+    cache: FrameCache,
+    cfg: TrainConfig,
+    out_dir: Path,
+    device: str = "cpu",
+    progress: bool = True,
+    preset: Preset | None = None,
+) -> dict:
+    """Train on ``cache``; resumable from ``out_dir/checkpoint.pt``. Writes ``renderer.{npz,json}``.
+
+    ``preset`` overrides ``cfg.preset`` (e.g. a shrunken preset in tests); the cache must match its crop.
+    """
+    preset = preset or get_preset(cfg.preset)
+    if cache.crops.shape[1] != preset.crop:
+        raise ValueError(
+            f"cache crops are {cache.crops.shape[1]} px, preset {preset.name} needs {preset.crop}"
+        )
+    steps = cfg.steps or preset.steps
+    out_dir.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(cfg.seed)
+    net = make_renderer(preset).to(device)
+    opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
+    step, elapsed, log_rows = 0, 0.0, []
+    ckpt = out_dir / "checkpoint.pt"
+    if ckpt.exists():
+        state = torch.load(ckpt, weights_only=True, map_location=device)
+        net.load_state_dict(state["net"])
+        opt.load_state_dict(state["opt"])
+        step, elapsed, log_rows = int(state["step"]), float(state["elapsed"]), json.loads(state["log"])
+        log.info("resuming renderer training at step %d", step)
+
+    def save_checkpoint() -> None:
+        tmp = out_dir / ".checkpoint.tmp"
+        torch.save(
+            {
+                "net": net.state_dict(),
+                "opt": opt.state_dict(),
+                "step": step,
+                "elapsed": elapsed,
+                "log": json.dumps(log_rows),
+            },
+            tmp,
+        )
+        os.replace(tmp, ckpt)
+
+    n = len(cache.frames)
+    bar = tqdm(total=steps, initial=step, desc=f"train renderer ({preset.name})", disable=not progress)
+    running: list[float] = []
+    t_last = time.perf_counter()
+    while step < steps and (cfg.budget_s is None or elapsed < cfg.budget_s):
+        net.train()
+        idx = np.random.default_rng([cfg.seed, step]).integers(0, n, preset.batch)
+        target, geo = cache.batch(idx, device)
+        interior, final = net(geo.uv, geo.mask, geo.mouth, blank_face(target, geo.region))
+        loss = renderer_loss(interior, final, target, geo.mask, cfg)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        step += 1
+        now = time.perf_counter()
+        elapsed += now - t_last
+        t_last = now
+        running.append(loss.item())
+        bar.update(1)
+        if step % 50 == 0:
+            bar.set_postfix(loss=f"{np.mean(running[-50:]):.4f}")
+        if step % cfg.preview_every == 0:
+            _preview(out_dir / f"preview_{step:06d}.png", target, interior, final)
+        if step % cfg.checkpoint_every == 0 or step == steps:
+            log_rows.append({"step": step, "loss": float(np.mean(running)), "seconds": round(elapsed, 1)})
+            running = []
+            save_checkpoint()
+    bar.close()
+    if running:
+        log_rows.append({"step": step, "loss": float(np.mean(running)), "seconds": round(elapsed, 1)})
+    save_checkpoint()
+    info = {
+        "steps": step,
+        "train_seconds": round(elapsed, 1),
+        "train_frames": int(n),
+        "parameters": count_parameters(net),
+        "config": asdict(cfg),
+        "log": log_rows,
+    }
+    save_renderer(net, out_dir, preset, info)
+    return info

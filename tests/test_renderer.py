@@ -1,0 +1,154 @@
+"""Neural renderer: crops, texture, U-Nets, training with resume, rendering into frames (synthetic data)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from nvp.media import VideoWriter
+from nvp.tracked import TrackedSequence
+from renderer.crop import crop_boxes, crop_camera, cut, feather, paste
+from renderer.data import Preset, build_cache, camera_vertices, face_region
+from renderer.networks import NeuralTexture, UNet, UNetConfig, count_parameters
+from renderer.train import TrainConfig, load_renderer, train_renderer
+from tracking.synthetic import synthetic_sequence
+
+TINY = Preset("tiny", crop=32, base=4, dilated=False, texture_size=32, steps=2, batch=2)
+SIZE = 96
+
+
+@pytest.fixture(scope="module")
+def footage(tmp_path_factory, face_model):
+    """A 12-frame 96x96 video of the face model with a UV-coloured texture, and its exact tracking."""
+    from renderer.gl import GLRasterizer
+
+    _, truth = synthetic_sequence(face_model, frames=12, size=SIZE, focal=200.0, noise_px=0.0)
+    t = 12
+    seq = TrackedSequence(
+        fps=25.0,
+        width=SIZE,
+        height=SIZE,
+        focal=200.0,
+        center=np.array([SIZE / 2, SIZE / 2], np.float32),
+        identity=truth["identity"],
+        rotation=truth["rotation"],
+        translation=truth["translation"],
+        expression=truth["expression"],
+        landmarks=np.zeros((t, 478, 2), np.float32),
+        valid=np.ones(t, bool),
+        fit_error=np.zeros(t, np.float32),
+        face_model_sha256=face_model.sha256,
+    )
+    path = tmp_path_factory.mktemp("footage") / "face.mp4"
+    with GLRasterizer(SIZE, SIZE) as gl, VideoWriter(path, 25.0, SIZE, SIZE) as w:
+        for i in range(t):
+            v = camera_vertices(face_model, seq, np.array([i]), seq.expression[i : i + 1])[0]
+            r = gl.rasterize(v, face_model.triangles, face_model.uvs, seq.focal, seq.center)
+            img = np.full((SIZE, SIZE, 3), 90, np.uint8)
+            col = torch.cat([r.uv, 1 - r.uv[..., :1]], -1).numpy() * 255
+            img[r.mask.numpy()] = col[r.mask.numpy()].astype(np.uint8)
+            w.write(img)
+    return path, seq
+
+
+def test_crop_boxes_follow_points_and_are_smooth():
+    t = np.arange(50)
+    pts = np.stack([np.stack([100 + 2 * t, 80 + 0 * t], 1), np.stack([160 + 2 * t, 150 + 0 * t], 1)], 1)
+    pts = pts + np.random.default_rng(0).normal(0, 2, pts.shape)
+    boxes = crop_boxes(pts.astype(np.float64))
+    assert boxes.shape == (50, 3)
+    assert np.abs(boxes[25, 0] - (130 + 50)) < 3 and np.abs(boxes[:, 2] - 70 * 1.6).max() < 12
+    assert np.abs(np.diff(boxes[:, 2])).max() < np.abs(np.diff(pts[:, 1, 0] - pts[:, 0, 0])).max()
+
+
+def test_cut_and_paste_round_trip():
+    frame = torch.rand(3, 120, 160) * 255
+    box = np.array([70.0, 60.0, 64.0])
+    crop = cut(frame[None], torch.from_numpy(box[None]).float(), 64)[0]
+    # an axis-aligned 1:1 crop is an exact copy
+    torch.testing.assert_close(crop, frame[:, 28:92, 38:102], atol=1e-3, rtol=0)
+    back = paste(frame, crop, box, torch.ones(1, 1, 64, 64))
+    torch.testing.assert_close(back, frame, atol=1e-3, rtol=0)
+    other = paste(frame, torch.zeros_like(crop), box, feather(64))
+    assert other[:, 60, 70].abs().max() < 1e-3  # centre replaced
+    torch.testing.assert_close(other[:, :20], frame[:, :20])  # outside the box untouched
+
+
+def test_crop_camera_maps_points_into_the_crop():
+    f, c = crop_camera(500.0, np.array([320.0, 240.0]), np.array([300.0, 200.0, 100.0]), 50)
+    x = np.array([0.02, -0.01, 1.0])  # a camera point
+    full = 500.0 * x[:2] / x[2] + [320.0, 240.0]
+    crop = f * x[:2] / x[2] + c
+    np.testing.assert_allclose(crop, (full - [250.0, 150.0]) * 0.5, atol=1e-4)
+
+
+def test_texture_sampling_is_zero_outside_the_mesh():
+    tex = NeuralTexture(16, 8)
+    torch.nn.init.normal_(tex.texture)
+    uv = torch.rand(2, 10, 12, 2)
+    mask = (torch.rand(2, 1, 10, 12) > 0.5).float()
+    out = tex(uv, mask)
+    assert out.shape == (2, 16, 10, 12)
+    assert (out * (1 - mask)).abs().max() == 0 and (out * mask).abs().max() > 0
+
+
+@pytest.mark.parametrize("dilated", [False, True])
+def test_unet_shapes_and_range(dilated):
+    net = UNet(7, 3, UNetConfig(base=4, dilated=dilated))
+    y = net(torch.randn(2, 7, 48, 48))
+    assert y.shape == (2, 3, 48, 48) and 0 <= y.min() and y.max() <= 1
+
+
+def test_paper_unet_size():
+    # the paper's networks: depth 5, 32 base features, about 2.35 M parameters (ours: 2.74 M)
+    n = count_parameters(UNet(18, 3, UNetConfig(base=32, dilated=True)))
+    assert 2.0e6 < n < 3.0e6
+
+
+def test_face_region_grows_the_mask():
+    mask = torch.zeros(1, 1, 50, 50)
+    mask[..., 20:30, 20:30] = 1
+    region = face_region(mask, grow=0.1)
+    assert region[..., 15:35, 15:35].min() == 1 and region[..., :10].max() == 0
+
+
+def test_training_resumes_exactly_and_renders(footage, face_model, tmp_path):
+    from renderer.render import FrameRenderer
+
+    path, seq = footage
+    cache = build_cache(path, seq, face_model, TINY, np.arange(10), progress=False)
+    assert cache.crops.shape == (10, 32, 32, 3) and cache.mask.mean() > 0.2
+    assert cache.mouth.any() and (cache.region >= cache.mask).all()
+    cfg = TrainConfig(steps=4, checkpoint_every=2, preview_every=2)
+    full = train_renderer(cache, cfg, tmp_path / "a", progress=False, preset=TINY)
+    train_renderer(
+        cache, TrainConfig(steps=2, checkpoint_every=2), tmp_path / "b", progress=False, preset=TINY
+    )
+    resumed = train_renderer(cache, cfg, tmp_path / "b", progress=False, preset=TINY)
+    assert full["steps"] == resumed["steps"] == 4
+    a, _, _ = load_renderer(tmp_path / "a")
+    b, _, m = load_renderer(tmp_path / "b")
+    for (k, va), vb in zip(a.state_dict().items(), b.state_dict().values(), strict=True):
+        torch.testing.assert_close(va, vb, msg=k)
+    assert m["preset"]["name"] == "tiny" and (tmp_path / "a" / "preview_000002.png").exists()
+
+    from nvp.media import iter_frames
+
+    frame = next(iter_frames(path, start_frame=11))
+    with FrameRenderer(tmp_path / "a", face_model, seq) as fr:
+        v = camera_vertices(face_model, seq, np.array([11]), seq.expression[11:12])[0]
+        img = fr.render(frame, 11, v, original_cam=v)
+    assert img.shape == frame.shape and img.dtype == np.uint8
+    box = fr.boxes[11]
+    far = int(box[1] + box[2] / 2) + 2  # rows below the crop are untouched
+    if far < SIZE:
+        np.testing.assert_array_equal(img[far:], frame[far:])
+
+
+def test_load_renderer_rejects_other_files(tmp_path):
+    from nvp.errors import FormatError
+
+    (tmp_path / "renderer.json").write_text('{"format": "other"}')
+    with pytest.raises(FormatError, match="expected nvp.renderer"):
+        load_renderer(tmp_path)
