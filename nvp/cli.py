@@ -125,6 +125,134 @@ def _cmd_predict(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_train_renderer(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from nvp.errors import NvpError
+    from nvp.face_model import default_face_model
+    from nvp.media import probe_video
+    from nvp.tracked import TrackedSequence
+    from renderer.data import build_cache, get_preset
+    from renderer.train import TrainConfig, train_renderer
+
+    seq = TrackedSequence.load(args.track_dir)
+    info = probe_video(args.video)
+    if (info.width, info.height) != (seq.width, seq.height) or abs(info.num_frames - seq.num_frames) > 1:
+        raise NvpError(
+            f"{args.video} ({info.width}x{info.height}, {info.num_frames} frames) is not the video "
+            f"tracked in {args.track_dir} ({seq.width}x{seq.height}, {seq.num_frames} frames)"
+        )
+    preset = get_preset(args.preset)
+    split = int(round(seq.num_frames * args.train_fraction))
+    cache = build_cache(args.video, seq, default_face_model(), preset, np.arange(split), not args.quiet)
+    budget = None if args.budget_minutes is None else args.budget_minutes * 60
+    cfg = TrainConfig(preset=args.preset, steps=args.steps, budget_s=budget, seed=args.seed)
+    result = train_renderer(cache, cfg, Path(args.output), device=args.device, progress=not args.quiet)
+    print(
+        f"trained the {args.preset} renderer on {result['train_frames']} frames: {result['steps']} steps in "
+        f"{result['train_seconds'] / 60:.1f} min → {Path(args.output) / 'renderer.json'}"
+    )
+    return 0
+
+
+def _cmd_render(args: argparse.Namespace) -> int:
+    import numpy as np
+    from tqdm import tqdm
+
+    from nvp.face_model import default_face_model
+    from nvp.media import VideoWriter, has_audio, iter_frames, read_audio
+    from nvp.provenance import synthetic_mark
+    from nvp.tracked import TrackedSequence
+    from renderer.data import camera_vertices
+    from renderer.render import FrameRenderer
+
+    seq = TrackedSequence.load(args.track_dir)
+    model = default_face_model()
+    start = args.start_frame
+    n = seq.num_frames - start if args.frames is None else min(args.frames, seq.num_frames - start)
+    audio = None
+    if has_audio(args.video):
+        a = read_audio(args.video, 48000, mono=False)
+        audio = a[int(start / seq.fps * 48000) :]
+    tags = synthetic_mark("render", renderer=str(args.renderer_dir))
+    bar = tqdm(total=n, desc="render", unit="frame", disable=args.quiet)
+    with (
+        FrameRenderer(args.renderer_dir, model, seq, args.device) as fr,
+        VideoWriter(args.output, seq.fps, seq.width, seq.height, audio, 48000, metadata=tags) as vw,
+    ):
+        for t, frame in zip(
+            range(start, start + n), iter_frames(args.video, seq.fps, start, n), strict=False
+        ):
+            v = camera_vertices(model, seq, np.array([t]), seq.expression[t : t + 1])[0]
+            vw.write(fr.render(frame, t, v))
+            bar.update(1)
+    bar.close()
+    print(f"rendered {n} frames → {args.output}")
+    return 0
+
+
+def _cmd_fit(args: argparse.Namespace) -> int:
+    from nvp.pipeline import FitConfig, fit
+
+    cfg = FitConfig(
+        preset=args.preset,
+        budget_minutes=args.budget_minutes,
+        steps=args.steps,
+        features=args.features,
+        device=args.device,
+    )
+    bundle = fit(args.video, args.output, cfg, progress=not args.quiet)
+    st = bundle.manifest["stages"]
+    total = sum(v.get("seconds", 0) for v in st.values())
+    print(f"person bundle → {bundle.root} (fit took {total / 60:.1f} min)")
+    return 0
+
+
+def _cmd_dub(args: argparse.Namespace) -> int:
+    from nvp.pipeline import dub
+
+    r = dub(args.audio, args.person, args.output, device=args.device, progress=not args.quiet)
+    print(
+        f"{r.frames} frames ({r.frames / r.fps:.2f} s for {r.audio_seconds:.2f} s of audio) in "
+        f"{r.seconds:.1f} s ({r.frames / r.seconds:.1f} frames/s) → {r.output}"
+    )
+    return 0
+
+
+def _cmd_info(args: argparse.Namespace) -> int:
+    from nvp.bundle import PersonBundle
+
+    b = PersonBundle.load(args.person)
+    m = b.manifest
+    t = m["target"]
+    print(f"person bundle {b.root} (format {m['format']} v{m['version']}, made by nvp {m['nvp_version']})")
+    print(
+        f"  target: {Path(t['source']).name}, {t['width']}x{t['height']}, {t['fps']:.3f} fps, "
+        f"{t['frames']} frames ({t['duration_s']:.1f} s)"
+    )
+    print(f"  speech features: {m['feature_kind']}; renderer preset: {m['preset']}")
+    for name, facts in m["stages"].items():
+        extra = ", ".join(f"{k} {v}" for k, v in facts.items() if k != "seconds")
+        print(f"  {name}: {facts.get('seconds', 0):.1f} s" + (f" ({extra})" if extra else ""))
+    return 0
+
+
+def _cmd_verify(args: argparse.Namespace) -> int:
+    import json
+
+    from nvp.provenance import verify
+
+    r = verify(args.video)
+    if args.json:
+        print(json.dumps({"path": r.path, "synthetic": r.marked, "tags": r.tags}))
+    elif r.marked:
+        made = f"nvp {r.tags.get('nvp_version', '?')} ({r.tags.get('nvp_kind', '?')})"
+        print(f"{r.path}: SYNTHETIC — made by {made}")
+    else:
+        print(f"{r.path}: no nvp synthetic-media mark")
+    return 0 if r.marked else 1
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from nvp.demo import run_demo
 
@@ -187,6 +315,58 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mesh", type=Path, metavar="TRACK_DIR", help="also export vertices with this identity")
     p.add_argument("-o", "--output", type=Path, required=True, help="output .npz (expression, vertices)")
     p.set_defaults(func=_cmd_predict)
+
+    p = sub.add_parser("train-renderer", help="train the neural renderer on a tracked video")
+    p.add_argument("track_dir", type=Path, help="output of nvp track for the video")
+    p.add_argument("video", type=Path, help="the tracked video")
+    p.add_argument("-o", "--output", type=Path, required=True, help="output folder (renderer.json/.npz)")
+    p.add_argument(
+        "--preset", choices=("cpu", "quality", "paper"), default="cpu", help="speed/quality preset"
+    )
+    p.add_argument("--steps", type=int, help="training steps (default: the preset's)")
+    p.add_argument("--budget-minutes", type=float, help="stop training after this many minutes")
+    p.add_argument("--train-fraction", type=float, default=1.0, help="train on this first part of the video")
+    p.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
+    p.add_argument("--seed", type=int, default=0, help="random seed")
+    p.set_defaults(func=_cmd_train_renderer)
+
+    p = sub.add_parser("render", help="re-render a tracked video with its trained renderer")
+    p.add_argument("track_dir", type=Path, help="output of nvp track")
+    p.add_argument("renderer_dir", type=Path, help="output of nvp train-renderer")
+    p.add_argument("video", type=Path, help="the tracked video")
+    p.add_argument("-o", "--output", type=Path, required=True, help="output mp4")
+    p.add_argument("--start-frame", type=int, default=0, help="first frame to render")
+    p.add_argument("--frames", type=int, help="number of frames (default: to the end)")
+    p.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
+    p.set_defaults(func=_cmd_render)
+
+    p = sub.add_parser("fit", help="learn a person from 1-3 minutes of their talking video")
+    p.add_argument("video", type=Path, help="the person talking (video with audio)")
+    p.add_argument("-o", "--output", type=Path, required=True, help="person bundle folder")
+    p.add_argument("--preset", choices=("cpu", "quality", "paper"), default="cpu", help="renderer preset")
+    p.add_argument("--budget-minutes", type=float, help="limit renderer training to this many minutes")
+    p.add_argument("--steps", type=int, help="renderer training steps (default: the preset's)")
+    p.add_argument("--features", choices=("phonemes", "mel"), default="phonemes", help="speech features")
+    p.add_argument("--device", default="cpu", help="torch device for training (cpu, cuda)")
+    p.set_defaults(func=_cmd_fit)
+
+    p = sub.add_parser("dub", help="make a fitted person say new audio")
+    p.add_argument("audio", type=Path, help="speech: wav, flac, mp3, m4a (or a video's audio track)")
+    p.add_argument("--person", type=Path, required=True, help="person bundle from nvp fit")
+    p.add_argument("-o", "--output", type=Path, required=True, help="output mp4")
+    p.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
+    p.set_defaults(func=_cmd_dub)
+
+    p = sub.add_parser("info", help="summarise a person bundle")
+    p.add_argument("person", type=Path, help="person bundle folder")
+    p.set_defaults(func=_cmd_info)
+
+    p = sub.add_parser(
+        "verify", help="check whether a video carries nvp's synthetic-media mark (exit 0 = yes)"
+    )
+    p.add_argument("video", type=Path, help="video file")
+    p.add_argument("--json", action="store_true", help="print the result as JSON")
+    p.set_defaults(func=_cmd_verify)
 
     p = sub.add_parser("demo", help="make the shipped demo clip and run the pipeline on it")
     p.add_argument("-o", "--output", type=Path, default=Path("nvp-demo"), help="output directory")

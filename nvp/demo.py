@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from nvp.errors import MediaError, NoFaceError
+from nvp.provenance import synthetic_mark
 
 log = logging.getLogger(__name__)
 
@@ -521,7 +522,7 @@ def make_demo_clip(
         height=size,
         audio=audio,
         audio_rate=AUDIO_RATE,
-        metadata={"comment": f"nvp demo clip (skimage.data.astronaut, seed {seed})"},
+        metadata=synthetic_mark("demo-target", source=f"skimage.data.astronaut, seed {seed}"),
     ) as writer:
         for i in range(num_frames):
             writer.write(rig.render(float(opening[i]), float(blink[i]), float(angle[i]), shift[i]))

@@ -103,6 +103,26 @@ class FaceModel:
         v = self.vertices(id_coeffs)[[13, 14]] + d
         return np.linalg.norm(v[:, 0] - v[:, 1], axis=-1)
 
+    def mouth_weights(self, smoothing: int = 4) -> np.ndarray:
+        """``(V,)`` weights in [0, 1]: 1 on the lips, mouth and jaw, 0 on the eyes and upper face, with a
+        smooth transition (``smoothing`` rounds of averaging over mesh neighbours). Used to take the mouth
+        from the audio and everything else (eyes, blinks, brows) from the footage."""
+        w = (self.vertex_regions["lips"] | self.vertex_regions["mouth"] | self.vertex_regions["jaw"]).astype(
+            float
+        )
+        keep = self.vertex_regions["eyes"] | self.vertex_regions["upper_face"]
+        core = self.vertex_regions["lips"] | self.vertex_regions["mouth"]
+        edges = np.concatenate(
+            [self.triangles[:, [0, 1]], self.triangles[:, [1, 2]], self.triangles[:, [2, 0]]]
+        )
+        deg = np.bincount(edges[:, 0], minlength=len(w)) + np.bincount(edges[:, 1], minlength=len(w))
+        for _ in range(smoothing):
+            acc = np.bincount(edges[:, 0], w[edges[:, 1]], len(w)) + np.bincount(
+                edges[:, 1], w[edges[:, 0]], len(w)
+            )
+            w = np.where(core, 1.0, np.where(keep, 0.0, 0.5 * w + 0.5 * acc / np.maximum(deg, 1)))
+        return w.astype(np.float32)
+
     def face_width(self, id_coeffs: np.ndarray | None = None) -> float:
         """Width of the face (x extent of the face-oval landmarks), cm."""
         shape = self.template if id_coeffs is None else self.vertices(id_coeffs)

@@ -316,6 +316,16 @@ def probe_video(path: str | os.PathLike[str]) -> VideoInfo:
     return _probe(path).info
 
 
+def audio_rate(path: str | os.PathLike[str]) -> int:
+    """Sample rate in Hz of a file's first audio stream."""
+    p = _check_exists(path, "audio")
+    with _open_input(p, "audio") as container:
+        if not container.streams.audio:
+            raise MediaError(f"'{p}' has no audio stream (found streams: {_stream_kinds(container)})")
+        s = container.streams.audio[0]
+        return int(s.codec_context.sample_rate or s.rate)
+
+
 def has_audio(path: str | os.PathLike[str]) -> bool:
     """True if the media file has at least one audio stream.
 
@@ -456,8 +466,10 @@ def _iter_grid(probe: _Probe, rate: Fraction, start: int, end: int) -> Iterator[
             i += 1
 
 
-def read_audio(path: str | os.PathLike[str], sample_rate: int = 16000) -> np.ndarray:
-    """Decode the first audio stream of a file to mono at ``sample_rate``.
+def read_audio(
+    path: str | os.PathLike[str], sample_rate: int | None = 16000, mono: bool = True
+) -> np.ndarray:
+    """Decode the first audio stream of a file to mono (or its own channels) at ``sample_rate``.
 
     Works for any format FFmpeg reads (wav 16/24/32-bit, flac, mp3, m4a/aac, ogg, video files with an
     audio track), any input rate and channel count. Channels are averaged with equal weights (a stereo
@@ -465,15 +477,18 @@ def read_audio(path: str | os.PathLike[str], sample_rate: int = 16000) -> np.nda
 
     Args:
         path: audio or video file.
-        sample_rate: output rate in Hz.
+        sample_rate: output rate in Hz; None keeps the stream's own rate (see :func:`audio_rate`).
+        mono: average the channels (default); False keeps mono or stereo as they are (more than two
+            channels are averaged to mono).
 
     Returns:
-        ``float32`` array of shape ``(num_samples,)``, values in ``[-1, 1]``.
+        ``float32`` array of shape ``(num_samples,)`` (mono) or ``(num_samples, channels)``, values in
+        ``[-1, 1]``.
 
     Raises:
         MediaError: the file does not exist, is unreadable or corrupt, or has no audio stream.
     """
-    if sample_rate <= 0:
+    if sample_rate is not None and sample_rate <= 0:
         raise ValueError(f"sample_rate must be positive, got {sample_rate}")
     p = _check_exists(path, "audio")
     chunks: list[np.ndarray] = []
@@ -481,7 +496,9 @@ def read_audio(path: str | os.PathLike[str], sample_rate: int = 16000) -> np.nda
     def collect(frames: list[Any]) -> None:
         for f in frames:
             planes = f.to_ndarray()  # planar float: (channels, samples)
-            chunks.append(planes[0] if planes.shape[0] == 1 else planes.mean(axis=0, dtype=np.float32))
+            if mono or planes.shape[0] > 2:
+                planes = planes[:1] if planes.shape[0] == 1 else planes.mean(axis=0, dtype=np.float32)[None]
+            chunks.append(planes.T)
 
     with _open_input(p, "audio") as container:
         if not container.streams.audio:
@@ -489,6 +506,8 @@ def read_audio(path: str | os.PathLike[str], sample_rate: int = 16000) -> np.nda
                 f"cannot read audio from '{p}': no audio stream (found streams: {_stream_kinds(container)})"
             )
         stream = container.streams.audio[0]
+        if sample_rate is None:
+            sample_rate = int(stream.codec_context.sample_rate or stream.rate)
         stated = float(stream.duration * stream.time_base) if stream.duration and stream.time_base else None
         resampler = None
         setup: tuple[str, str, int] | None = None
@@ -510,7 +529,10 @@ def read_audio(path: str | os.PathLike[str], sample_rate: int = 16000) -> np.nda
     if not chunks:
         logger.warning("audio stream of '%s' decoded to no samples", p)
         return np.zeros(0, dtype=np.float32)
-    audio = np.concatenate(chunks).astype(np.float32, copy=False)
+    width = min(c.shape[1] for c in chunks)  # a layout change mid-stream keeps the narrower one
+    audio = np.concatenate([c[:, :width] for c in chunks]).astype(np.float32, copy=False)
+    if mono or width == 1:
+        audio = np.ascontiguousarray(audio[:, 0]) if width == 1 else audio.mean(1)
     if stated is not None:
         # AAC/MP3 decoders return the encoder's padding after the last real sample; MP4 states the real
         # length, so drop a small excess (the start padding is already removed by FFmpeg).

@@ -1,0 +1,128 @@
+"""End to end on the tiny demo clip: fit → info → dub → verify, resuming, and clear errors."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import soundfile as sf
+from test_cli import assert_one_line_error, nvp
+
+from nvp.media import probe_video, read_audio
+
+
+def speechlike(seconds: float, sr: int = 22050, seed: int = 0) -> np.ndarray:
+    """Syllable-rate amplitude-modulated noise: 'speech' for the energy-based checks."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(int(seconds * sr)) / sr
+    env = np.clip(np.sin(2 * np.pi * 4 * t), 0, None)
+    return (0.3 * env * rng.standard_normal(len(t))).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def bundle(demo_clip, tmp_path_factory):
+    out = tmp_path_factory.mktemp("fit") / "person"
+    proc = nvp("fit", demo_clip.path, "-o", out, "--steps", 2)
+    assert proc.returncode == 0, proc.stderr
+    assert "person bundle" in proc.stdout
+    return out
+
+
+def test_fit_writes_a_complete_bundle(bundle):
+    m = json.loads((bundle / "bundle.json").read_text())
+    assert m["format"] == "nvp.person_bundle" and m["version"] == 1
+    assert set(m["stages"]) == {"target", "track", "style", "renderer"}
+    assert (bundle / "renderer" / "renderer.json").exists() and (bundle / "style.json").exists()
+    assert not (bundle / "renderer" / "checkpoint.pt").exists()
+    assert not bundle.with_name("person.partial").exists()
+    proc = nvp("info", bundle)
+    assert proc.returncode == 0 and "renderer preset: cpu" in proc.stdout, proc.stderr
+
+
+@pytest.mark.parametrize(("seconds", "channels"), [(0.8, 1), (2.7, 2)])
+def test_dub_lasts_as_long_as_the_audio_and_is_marked(bundle, demo_clip, tmp_path, seconds, channels):
+    audio = speechlike(seconds)
+    if channels == 2:
+        audio = np.stack([audio, 0.5 * audio], 1)
+    wav = tmp_path / "speech.wav"
+    sf.write(wav, audio, 22050)
+    out = tmp_path / "dub.mp4"
+    proc = nvp("dub", wav, "--person", bundle, "-o", out)
+    assert proc.returncode == 0, proc.stderr
+    info = probe_video(out)
+    fps = 25.0
+    assert abs(info.num_frames - seconds * fps) <= 1  # longer than the 1.2 s target: ping-pong
+    assert (info.width, info.height) == (256, 256) and info.audio_sample_rate == 22050
+    back = read_audio(out, None, mono=False)
+    assert back.ndim == (1 if channels == 1 else 2)
+    proc = nvp("verify", out)
+    assert proc.returncode == 0 and "SYNTHETIC" in proc.stdout
+    assert nvp("verify", demo_clip.path).returncode == 0  # the demo target is synthetic too
+
+
+def test_a_camera_video_is_not_marked(tmp_path):
+    import av
+
+    path = tmp_path / "camera.mp4"
+    with av.open(str(path), "w") as c:
+        s = c.add_stream("libx264", rate=25)
+        s.width, s.height, s.pix_fmt = 64, 64, "yuv420p"
+        for _ in range(5):
+            c.mux(s.encode(av.VideoFrame.from_ndarray(np.zeros((64, 64, 3), np.uint8), format="rgb24")))
+        c.mux(s.encode(None))
+    proc = nvp("verify", path, "--json")
+    assert proc.returncode == 1 and json.loads(proc.stdout)["synthetic"] is False
+
+
+def test_dub_errors_are_one_line(bundle, tmp_path):
+    silent = tmp_path / "silent.wav"
+    sf.write(silent, np.zeros(16000, np.float32), 16000)
+    proc = nvp("dub", silent, "--person", bundle, "-o", tmp_path / "x.mp4")
+    assert_one_line_error(proc, "no speech")
+    assert not (tmp_path / "x.mp4").exists()
+    proc = nvp("dub", silent, "--person", tmp_path / "nobody", "-o", tmp_path / "x.mp4")
+    assert_one_line_error(proc, "not a person bundle")
+    (tmp_path / "notes.wav").write_text("not audio")
+    proc = nvp("dub", tmp_path / "notes.wav", "--person", bundle, "-o", tmp_path / "x.mp4")
+    assert_one_line_error(proc, "notes.wav")
+    assert not (tmp_path / "x.mp4").exists()
+
+
+def test_fit_resumes_after_an_interruption(demo_clip, tmp_path, monkeypatch):
+    import nvp.pipeline as pipeline
+    import tracking.track
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(pipeline, "_train_renderer", interrupted)
+    cfg = pipeline.FitConfig(steps=2)
+    with pytest.raises(KeyboardInterrupt):
+        pipeline.fit(demo_clip.path, tmp_path / "p", cfg, progress=False)
+    assert not (tmp_path / "p").exists()
+    progress = json.loads((tmp_path / "p.partial" / "progress.json").read_text())
+    assert set(progress["stages"]) == {"target", "track", "style"}
+    monkeypatch.undo()
+
+    def no_tracking(*a, **k):
+        raise AssertionError("tracking should not run again")
+
+    monkeypatch.setattr(tracking.track, "track_video", no_tracking)
+    bundle = pipeline.fit(demo_clip.path, tmp_path / "p", cfg, progress=False)
+    assert bundle.root == tmp_path / "p" and (tmp_path / "p" / "bundle.json").exists()
+    with pytest.raises(Exception, match="other settings"):
+        pipeline.BundleBuilder(tmp_path / "q", {"preset": "cpu"})
+        pipeline.BundleBuilder(tmp_path / "q", {"preset": "quality"})
+
+
+def test_fit_needs_audio(tmp_path):
+    from nvp.media import VideoWriter
+
+    path = tmp_path / "mute.mp4"
+    with VideoWriter(path, 25, 64, 64) as w:
+        for _ in range(5):
+            w.write(np.zeros((64, 64, 3), np.uint8))
+    proc = nvp("fit", path, "-o", tmp_path / "p")
+    assert_one_line_error(proc, "no audio")
+    assert not (tmp_path / "p").exists() and not (tmp_path / "p.partial").exists()
