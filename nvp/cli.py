@@ -256,7 +256,7 @@ def _cmd_verify(args: argparse.Namespace) -> int:
 def _cmd_demo(args: argparse.Namespace) -> int:
     from nvp.demo import run_demo
 
-    result = run_demo(Path(args.output), progress=not args.quiet)
+    result = run_demo(Path(args.output), progress=not args.quiet, budget_minutes=args.budget_minutes)
     print(result)
     return 0
 
@@ -368,8 +368,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.set_defaults(func=_cmd_verify)
 
-    p = sub.add_parser("demo", help="make the shipped demo clip and run the pipeline on it")
+    p = sub.add_parser("demo", help="make a talking person from a photo that ships with nvp, fit and dub it")
     p.add_argument("-o", "--output", type=Path, default=Path("nvp-demo"), help="output directory")
+    p.add_argument(
+        "--budget-minutes", type=float, default=8.0, help="renderer training time for the demo person"
+    )
     p.set_defaults(func=_cmd_demo)
     return ap
 

@@ -544,17 +544,6 @@ def make_demo_clip(
     )
 
 
-def _tracked_opening(seq) -> np.ndarray:
-    """``(T,)`` distance in pixels between the projected model vertices of landmarks 13 and 14."""
-    from nvp.face_model import default_face_model
-    from tracking.fit import projected_vertices
-
-    model = default_face_model()
-    verts = model.vertices(seq.identity, seq.expression)[:, model.landmark_vertices[[13, 14]]]
-    uv = projected_vertices(verts, seq.rotation, seq.translation, seq.focal, seq.center)
-    return np.linalg.norm(uv[:, 0] - uv[:, 1], axis=-1)
-
-
 def _write_png(path: Path, rgb: np.ndarray) -> None:
     import cv2
 
@@ -575,80 +564,89 @@ def _label(rgb: np.ndarray, text: str) -> np.ndarray:
     return out
 
 
-def _save_stills(clip: DemoClip, preview: Path, out_dir: Path, tracked_opening: np.ndarray) -> list[Path]:
-    """PNGs of the input frame beside the preview frame for three telling moments of the clip."""
+DEMO_TEXT = (
+    "Hello! I am a photograph that learned to talk. Everything you see was made on this computer, "
+    "from a picture and a few words, without any network."
+)
+
+
+def _demo_speech(text: str | None, seconds: float) -> tuple[np.ndarray, int, str]:
+    """What the demo person says: ``text`` with piper text to speech when it is installed, else ``seconds``
+    of a synthetic voice."""
+    from nvp.errors import NvpError
+    from nvp.tts import synthesize
+
+    if text:
+        try:
+            audio, rate = synthesize(text)
+            return audio, rate, f"text to speech (piper): {text!r}"
+        except NvpError as e:
+            log.warning("%s; the demo speaks with a synthetic voice instead", e)
+    rng = np.random.default_rng(1)
+    return _synth_voice(_speech(seconds, rng), seconds, rng), AUDIO_RATE, "synthetic voice (no TTS installed)"
+
+
+def _dub_stills(result, out_dir: Path) -> Path:
+    """One PNG with three dubbed frames: the widest predicted mouth, a closed one and one in between."""
+    from nvp.face_model import default_face_model
     from nvp.media import iter_frames
 
-    picks = {
-        "open": int(np.argmax(clip.mouth_opening)),
-        "closed": int(np.argmin(clip.mouth_opening)),
-        "turned": int(np.argmax(np.abs(clip.head_angle))),
-    }
-    wanted = set(picks.values())
-    frames: dict[int, list[np.ndarray]] = {i: [] for i in wanted}
-    for source in (clip.path, preview):
-        for i, frame in enumerate(iter_frames(source, fps=clip.fps, max_frames=max(wanted) + 1)):
-            if i in wanted:
-                frames[i].append(frame)
-    paths = []
-    for name, i in picks.items():
-        if len(frames[i]) != 2:
-            log.warning("frame %d could not be read back; no '%s' still", i, name)
-            continue
-        left = _label(frames[i][0], f"input frame {i}: mouth {clip.mouth_opening[i]:.1f} px")
-        right = _label(
-            frames[i][1], f"fit: mouth {tracked_opening[i]:.1f} px, head {clip.head_angle[i]:+.1f} deg"
-        )
-        path = out_dir / f"demo_still_{name}.png"
-        _write_png(path, np.hstack([left, right]))
-        paths.append(path)
-    return paths
+    model = default_face_model()
+    gap = model.inner_lip_gap(np.zeros(model.num_id, np.float32), result.expression)
+    picks = [int(np.argmax(gap)), int(np.argsort(gap)[len(gap) // 2]), int(np.argmin(gap))]
+    frames = {}
+    for i, frame in enumerate(iter_frames(result.output, max_frames=max(picks) + 1)):
+        if i in picks:
+            frames[i] = _label(frame, f"dub frame {i}: predicted opening {10 * gap[i]:.1f} mm")
+    path = out_dir / "demo_dub_stills.png"
+    _write_png(path, np.hstack([frames[i] for i in picks if i in frames]))
+    return path
 
 
-def run_demo(out_dir: str | Path, progress: bool = True) -> str:
-    """Make the demo clip in ``out_dir``, track it, and write a preview and stills of the fit.
+def run_demo(
+    out_dir: str | Path,
+    progress: bool = True,
+    budget_minutes: float = 8.0,
+    seconds: float = 20.0,
+    text: str | None = DEMO_TEXT,
+) -> str:
+    """The shipped default: make a talking target from the astronaut photo, fit it, dub it.
 
-    Writes ``demo_input.mp4`` (the synthetic clip), ``track/`` (the :class:`~nvp.tracked.TrackedSequence`),
-    ``demo_preview.mp4`` (the fitted mesh over the clip) and ``demo_still_{open,closed,turned}.png`` (input
-    and preview side by side at the widest mouth opening, a closed mouth and the largest head angle).
+    Writes ``demo_target.mp4`` (a ``seconds`` long synthetic clip), ``person/`` (the person bundle;
+    renderer trained for ``budget_minutes`` with the cpu preset), ``demo_speech.wav`` and ``demo_dub.mp4``
+    (the person saying ``text`` with piper text to speech when the ``tts`` extra is installed, a synthetic
+    voice otherwise) and ``demo_dub_stills.png``.
 
     Returns:
-        A short multi-line summary: where the files are, valid frames, median fit error, and the correlation
-        between the tracked mouth opening (projected model vertices of landmarks 13/14) and the animated one.
+        A short multi-line summary: where the files are and how long each step took.
     """
-    from tracking.preview import write_preview
-    from tracking.track import track_video
+    from nvp.pipeline import FitConfig, dub, fit
+    from nvp.provenance import verify
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    clip = make_demo_clip(out / "demo_input.mp4")
+    target = out / "demo_target.mp4"
+    clip = make_demo_clip(target, seconds=seconds, size=256) if not target.exists() else None
     t_clip = time.perf_counter() - t0
-    seq, _ = track_video(clip.path, progress=progress)
-    track_dir = seq.save(out / "track")
-    preview = out / "demo_preview.mp4"
-    write_preview(clip.path, seq, preview, progress=progress)
-    tracked = _tracked_opening(seq)
-    n = min(len(tracked), clip.num_frames)
-    valid = seq.valid[:n]
-    truth = clip.mouth_opening[:n]
-    if valid.sum() >= 3 and np.std(truth[valid]) > 0 and np.std(tracked[:n][valid]) > 0:
-        corr = float(np.corrcoef(tracked[:n][valid], truth[valid])[0, 1])
-    else:
-        corr = float("nan")
-    stills = _save_stills(clip, preview, out, tracked)
-    errors = seq.fit_error[np.isfinite(seq.fit_error)]
-    median_error = float(np.median(errors)) if errors.size else float("nan")
+    bundle = fit(target, out / "person", FitConfig(preset="cpu", budget_minutes=budget_minutes), progress)
+    t_fit = time.perf_counter() - t0 - t_clip
+    import soundfile as sf
+
+    audio, rate, what = _demo_speech(text, min(seconds, 8.0))
+    sf.write(out / "demo_speech.wav", audio, rate)
+    result = dub(out / "demo_speech.wav", bundle.root, out / "demo_dub.mp4", progress=progress)
+    stills = _dub_stills(result, out)
+    marked = verify(result.output).marked
     elapsed = time.perf_counter() - t0
-    log.info("demo finished in %.1f s (clip %.1f s)", elapsed, t_clip)
     lines = [
-        f"demo input:  {clip.path} ({clip.num_frames} frames, {clip.num_frames / clip.fps:.1f} s, "
-        "synthetic from skimage.data.astronaut)",
-        f"tracking:    {track_dir} ({int(valid.sum())}/{seq.num_frames} frames valid, "
-        f"median fit error {median_error:.2f} px)",
-        f"preview:     {preview}",
-        f"stills:      {', '.join(str(p) for p in stills)}",
-        f"mouth opening, tracked vs animated: correlation {corr:.3f}",
-        f"total time:  {elapsed:.1f} s",
+        f"demo target: {target} (synthetic from skimage.data.astronaut"
+        + (f", {clip.num_frames} frames, made in {t_clip:.0f} s)" if clip else ", reused)"),
+        f"person:      {bundle.root} (fit in {t_fit / 60:.1f} min; nvp info {bundle.root})",
+        f"speech:      {what}",
+        f"dubbed:      {result.output} ({result.frames} frames for {result.audio_seconds:.1f} s of audio, "
+        f"{result.frames / result.seconds:.1f} frames/s; synthetic-media mark: {'yes' if marked else 'NO'})",
+        f"stills:      {stills}",
+        f"total time:  {elapsed / 60:.1f} min",
     ]
     return "\n".join(lines)

@@ -188,12 +188,9 @@ def dub(
     output: str | Path,
     device: str = "cpu",
     progress: bool = True,
-    audio: tuple[np.ndarray, int] | None = None,
 ) -> DubResult:
-    """Make the person of ``bundle_dir`` say ``audio_path``; writes an mp4 as long as the audio (±1 frame).
-
-    ``audio`` = ``(samples, rate)`` overrides reading ``audio_path`` (e.g. text-to-speech output).
-    """
+    """Make the person of ``bundle_dir`` say ``audio_path``; writes an mp4 as long as the audio (±1 frame),
+    with the input audio at its own sample rate and channels."""
     from tqdm import tqdm
 
     from nvp.audio_features import num_video_frames, speech_activity
@@ -208,11 +205,8 @@ def dub(
 
     t_start = time.perf_counter()
     bundle = PersonBundle.load(bundle_dir)
-    if audio is None:
-        rate = audio_rate(audio_path)
-        original = read_audio(audio_path, None, mono=False)
-    else:
-        original, rate = audio
+    rate = audio_rate(audio_path)
+    original = read_audio(audio_path, None, mono=False)
     mono = original if original.ndim == 1 else original.mean(1)
     if len(mono) == 0 or not speech_activity(mono, rate):
         raise NvpError(f"{audio_path}: no speech found (the audio is silent or too quiet)")

@@ -105,3 +105,13 @@ def test_no_face_in_the_photo_raises(tmp_path: Path, monkeypatch: pytest.MonkeyP
     with pytest.raises(NoFaceError):
         demo.make_demo_clip(tmp_path / "x.mp4", seconds=0.2)
     assert not (tmp_path / "x.mp4").exists()
+
+
+def test_run_demo_fits_and_dubs(tmp_path: Path) -> None:
+    from nvp.provenance import verify
+
+    summary = demo.run_demo(tmp_path, progress=False, budget_minutes=0.02, seconds=1.6, text=None)
+    assert "dubbed:" in summary and "synthetic-media mark: yes" in summary
+    assert (tmp_path / "person" / "bundle.json").exists()
+    assert verify(tmp_path / "demo_dub.mp4").marked
+    assert (tmp_path / "demo_dub_stills.png").exists()
