@@ -1,11 +1,20 @@
 #!/usr/bin/env bash
 # Set up (or refresh) nvp's virtual environment in .venv. Idempotent; needs only Python 3.11 and the
 # package registries. torch is pinned to the CPU build in pyproject.toml.
+#   bash scripts/setup.sh          # nvp + test tools
+#   bash scripts/setup.sh tts      # also the optional text-to-speech extra (piper, GPL-3.0)
 set -euo pipefail
 cd "$(dirname "$0")/.."
+extras="dev"
+for extra in "$@"; do
+  case "$extra" in
+    tts) extras="$extras,tts" ;;
+    *) echo "setup.sh: unknown extra '$extra' (known: tts)" >&2; exit 2 ;;
+  esac
+done
 if [ ! -x .venv/bin/python ]; then
   python3 -m venv .venv
 fi
-.venv/bin/python -m pip install --quiet --disable-pip-version-check -e '.[dev]' 2>&1 \
+.venv/bin/python -m pip install --quiet --disable-pip-version-check -e ".[$extras]" 2>&1 \
   | grep -v "^WARNING: Location" || true
 .venv/bin/python -m pip check

@@ -126,3 +126,23 @@ def test_fit_needs_audio(tmp_path):
     proc = nvp("fit", path, "-o", tmp_path / "p")
     assert_one_line_error(proc, "no audio")
     assert not (tmp_path / "p").exists() and not (tmp_path / "p.partial").exists()
+
+
+def test_text_to_video(bundle, tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    pytest.importorskip("piper", reason="the optional tts extra is not installed")
+    script = Path(__file__).resolve().parents[1] / "scripts" / "tts_to_video.py"
+    out = tmp_path / "tts.mp4"
+    proc = subprocess.run(
+        [sys.executable, script, "Hi there.", "--person", bundle, "-o", out, "--wav", tmp_path / "s.wav"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr
+    speech = read_audio(tmp_path / "s.wav", None)
+    assert abs(probe_video(out).num_frames - len(speech) / 22050 * 25) <= 1
+    assert nvp("verify", out).returncode == 0
