@@ -152,6 +152,16 @@ def _train_renderer(builder: BundleBuilder, cfg: FitConfig, progress: bool) -> N
     (builder.path("renderer") / "checkpoint.pt").unlink(missing_ok=True)
 
 
+def dubbed_vertices(model, seq, target_index: int, expression: np.ndarray) -> np.ndarray:
+    """``(V, 3)`` camera-frame vertices of a dubbed frame: pose, eyes and brows of target frame
+    ``target_index``, mouth and jaw of ``expression`` ``(K_exp,)`` (blended by ``model.mouth_weights``)."""
+    w = model.mouth_weights()[:, None]
+    tracked = model.vertices(seq.identity, seq.expression[target_index])
+    spoken = model.vertices(seq.identity, expression)
+    mixed = (1 - w) * tracked + w * spoken
+    return mixed @ seq.rotation[target_index].T + seq.translation[target_index]
+
+
 def _frames_in_order(video: Path, indices: np.ndarray, fps: float, chunk: int = 48):
     """Yield the frames of ``video`` at ``indices`` (any order, e.g. ping-pong), decoding at most ``chunk``
     consecutive output frames' worth of source frames at a time (bounded memory)."""
@@ -220,7 +230,6 @@ def dub(
     n_out = num_video_frames(duration, seq.fps)
     expression = predict_expressions(mono, rate, seq.fps, style, net, num_frames=n_out)
     order = target_frame_indices(n_out, seq.num_frames)
-    w = model.mouth_weights()[None, :, None]
     tags = synthetic_mark(
         "dub", bundle=bundle.manifest.get("id", bundle.root.name), audio=Path(audio_path).name
     )
@@ -234,13 +243,10 @@ def dub(
         ) as vw,
     ):
         for j, frame in enumerate(_frames_in_order(bundle.path("target"), order, seq.fps)):
-            k = np.array([order[j]])
-            tracked = model.vertices(seq.identity, seq.expression[k])
-            spoken = model.vertices(seq.identity, expression[j : j + 1])
-            mixed = (1 - w) * tracked + w * spoken  # mouth from the audio, eyes and brows from the footage
-            cam = np.einsum("bij,bvj->bvi", seq.rotation[k], mixed) + seq.translation[k, None]
-            orig = camera_vertices(model, seq, k, seq.expression[k])
-            vw.write(fr.render(frame, int(k[0]), cam[0], orig[0]))
+            k = int(order[j])
+            cam = dubbed_vertices(model, seq, k, expression[j])
+            orig = camera_vertices(model, seq, np.array([k]), seq.expression[k : k + 1])[0]
+            vw.write(fr.render(frame, k, cam, orig))
             bar.update(1)
     bar.close()
     return DubResult(out, n_out, seq.fps, duration, time.perf_counter() - t_start, order, expression)
