@@ -253,6 +253,23 @@ def _cmd_verify(args: argparse.Namespace) -> int:
     return 0 if r.marked else 1
 
 
+def _cmd_eval(args: argparse.Namespace) -> int:
+    from nvp.evaluate import EvalConfig, evaluate_video
+
+    cfg = EvalConfig(
+        train_fraction=args.train_fraction,
+        preset=args.preset,
+        budget_minutes=args.budget_minutes,
+        steps=args.steps,
+        side_by_side=args.side_by_side,
+    )
+    out = Path(args.output) if args.output else Path(args.video).with_suffix("") / "nvp-eval"
+    r = evaluate_video(args.video, out, cfg, progress=not args.quiet)
+    print((out / "eval.md").read_text())
+    print(f"eval.json, eval.md, eval.png → {out} ({r['frames']['test']} held-out frames)")
+    return 0
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from nvp.demo import run_demo
 
@@ -367,6 +384,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("video", type=Path, help="video file")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.set_defaults(func=_cmd_verify)
+
+    p = sub.add_parser("eval", help="self-reenactment: fit on the first part of a video, re-create the rest")
+    p.add_argument("video", type=Path, help="a talking-head video with audio (≥ 10 s; 1-3 min is best)")
+    p.add_argument("-o", "--output", type=Path, help="output folder (default: next to the video)")
+    p.add_argument("--train-fraction", type=float, default=0.8, help="part used for fitting")
+    p.add_argument("--preset", choices=("cpu", "quality", "paper"), default="cpu", help="renderer preset")
+    p.add_argument("--budget-minutes", type=float, default=30.0, help="renderer training time")
+    p.add_argument("--steps", type=int, help="renderer training steps (default: the preset's)")
+    p.add_argument("--side-by-side", action="store_true", help="also write real | visual | audio video")
+    p.set_defaults(func=_cmd_eval)
 
     p = sub.add_parser("demo", help="make a talking person from a photo that ships with nvp, fit and dub it")
     p.add_argument("-o", "--output", type=Path, default=Path("nvp-demo"), help="output directory")

@@ -1,4 +1,4 @@
-"""Pure metric functions on landmark tracks (pixels) — shared by evaluations and benchmarks."""
+"""Pure metric functions on landmark tracks (pixels) and images — shared by evaluations and benchmarks."""
 
 from __future__ import annotations
 
@@ -48,3 +48,37 @@ def closure_f1(pred_gap: np.ndarray, true_gap: np.ndarray, threshold: float) -> 
     recall = tp / t.sum() if t.sum() else 0.0
     f1 = 2 * precision * recall / (precision + recall) if precision + recall else 0.0
     return {"closure_precision": precision, "closure_recall": recall, "closure_f1": f1}
+
+
+def psnr(a: np.ndarray, b: np.ndarray, peak: float = 255.0) -> float:
+    """Peak signal-to-noise ratio in dB of two images of the same shape (``inf`` when identical)."""
+    mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
+    return float("inf") if mse == 0 else 10.0 * np.log10(peak**2 / mse)
+
+
+def ssim(a: np.ndarray, b: np.ndarray, window: int = 11) -> float:
+    """Mean structural similarity of two ``(H, W, 3)`` uint8 images (kornia, Gaussian window)."""
+    import torch
+    from kornia.metrics import ssim as kssim
+
+    ta = torch.from_numpy(np.ascontiguousarray(a)).permute(2, 0, 1)[None].float() / 255
+    tb = torch.from_numpy(np.ascontiguousarray(b)).permute(2, 0, 1)[None].float() / 255
+    return float(kssim(ta, tb, window).mean())
+
+
+def av_offset(generated: np.ndarray, real: np.ndarray, max_lag: int = 10) -> tuple[int, float]:
+    """Offset in frames between two mouth-opening signals ``(T,)`` by normalised cross-correlation.
+
+    Returns ``(lag, correlation)``: a positive lag means the generated mouth moves ``lag`` frames *after*
+    the real one (``generated[t + lag] ~ real[t]``); 0 is perfect sync. NaN frames are ignored.
+    """
+    g = (generated - np.nanmean(generated)) / (np.nanstd(generated) + 1e-12)
+    r = (real - np.nanmean(real)) / (np.nanstd(real) + 1e-12)
+    best, best_c = 0, -np.inf
+    for lag in range(-max_lag, max_lag + 1):
+        x, y = (g[lag:], r[: len(r) - lag]) if lag >= 0 else (g[:lag], r[-lag:])
+        n = min(len(x), len(y))
+        c = np.nanmean(x[:n] * y[:n]) if n > 2 else -np.inf
+        if c > best_c:
+            best, best_c = lag, c
+    return best, float(best_c)

@@ -146,3 +146,15 @@ def test_text_to_video(bundle, tmp_path):
     speech = read_audio(tmp_path / "s.wav", None)
     assert abs(probe_video(out).num_frames - len(speech) / 22050 * 25) <= 1
     assert nvp("verify", out).returncode == 0
+
+
+def test_eval_needs_audio_and_enough_frames(tmp_path, demo_clip):
+    from nvp.media import VideoWriter
+
+    path = tmp_path / "mute.mp4"
+    with VideoWriter(path, 25, 64, 64) as w:
+        for _ in range(5):
+            w.write(np.zeros((64, 64, 3), np.uint8))
+    assert_one_line_error(nvp("eval", path, "-o", tmp_path / "e"), "no audio")
+    proc = nvp("eval", demo_clip.path, "-o", tmp_path / "e2", "--steps", 1)
+    assert_one_line_error(proc, "held-out part is only")
