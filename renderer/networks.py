@@ -104,15 +104,18 @@ class NeuralRenderer(nn.Module):
         super().__init__()
         self.texture = NeuralTexture(texture_channels, texture_size)
         self.interior = UNet(texture_channels + 2, 3, unet)
-        self.composite = UNet(6 + 1, 3, unet)
+        self.composite = UNet(6 + 1, 4, unet)
 
     def forward(
         self, uv: torch.Tensor, mask: torch.Tensor, mouth: torch.Tensor, background: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
         feats = self.texture(uv, mask)
         interior = self.interior(torch.cat([feats, mask, mouth], 1)) * mask
-        final = self.composite(torch.cat([interior, background, mask], 1))
-        return interior, final
+        out = self.composite(torch.cat([interior, background, mask], 1))
+        # the second network paints the blanked face region and blends it into the untouched background:
+        # RGB plus an opacity, so pixels it leaves alone keep the footage exactly (no blur, no drift)
+        alpha = out[:, 3:]
+        return interior, alpha * out[:, :3] + (1 - alpha) * background
 
 
 def count_parameters(module: nn.Module) -> int:
