@@ -21,14 +21,12 @@ from pathlib import Path
 import numpy as np
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-TARGETS = ["dfrf__cnn2_25fps.mp4", "edtalk__pose_source2.mp4", "styletalk__Obama_clip2_av.mp4"]
+TARGETS = ["edtalk__pose_source2.mp4", "mimictalk__German_20s.mp4", "styletalk__Obama_clip2_av.mp4"]
 AUDIOS = {
-    "english (other speaker)": "audio/latentsync__demo2_audio.wav",
-    "french": "audio/dreamtalk__french1.wav",
+    "english, another speaker (F, 44.1 kHz stereo)": "audio/videoretalking__1.wav",
+    "french (M, 16 kHz)": "audio/dreamtalk__french1.wav",
 }
-TTS_TEXT = (
-    "Good evening. Tonight we look at how a single photograph and a short recording can become a video."
-)
+TTS_TEXT = "Good evening. Tonight we look at how a photograph and a short recording can become a video."
 
 
 def measure(result, bundle_dir: Path) -> dict:
