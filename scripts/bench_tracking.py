@@ -13,6 +13,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import platform
 import resource
@@ -134,6 +135,7 @@ def main(argv: list[str] | None = None) -> int:
             f"{info.num_frames / m['wall_s']:.1f} frames/s incl. start-up)"
         )
         print(f"  target peak ≤ 2 GB: {'PASS' if m['peak_rss_gb'] <= 2 else 'FAIL'}")
+    print("BENCH_JSON " + json.dumps({"512": r, "1080p": {**m, "frames": info.num_frames}}, default=str))
     return 0
 
 
