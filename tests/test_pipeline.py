@@ -40,7 +40,7 @@ def test_fit_writes_a_complete_bundle(bundle):
     assert proc.returncode == 0 and "renderer preset: cpu" in proc.stdout, proc.stderr
 
 
-@pytest.mark.parametrize(("seconds", "channels"), [(0.8, 1), (2.7, 2)])
+@pytest.mark.parametrize(("seconds", "channels"), [(0.8, 1), (1.7, 2)])
 def test_dub_lasts_as_long_as_the_audio_and_is_marked(bundle, demo_clip, tmp_path, seconds, channels):
     audio = speechlike(seconds)
     if channels == 2:
