@@ -1,1 +1,2 @@
-"""Neural renderer: rasterizer, neural texture, U-Nets (built in a later stage)."""
+"""Neural renderer: rasterizer (moderngl + torch reference), stabilised face crops, neural texture, U-Nets,
+training and rendering into the footage (deferred neural rendering, Thies et al. 2019/2020)."""
