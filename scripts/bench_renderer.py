@@ -37,32 +37,16 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
 
     from nvp.face_model import default_face_model
-    from nvp.tracked import TrackedSequence
     from renderer.data import PRESETS, FrameCache, camera_vertices
     from renderer.gl import GLRasterizer
     from renderer.render import FrameRenderer
     from renderer.train import TrainConfig, make_renderer, save_renderer, train_renderer
-    from tracking.synthetic import synthetic_sequence
+    from tracking.synthetic import synthetic_tracked
 
     model = default_face_model()
     size = 512
-    _, truth = synthetic_sequence(model, frames=args.frames, size=size, focal=1024.0, noise_px=0.0)
     t = args.frames
-    seq = TrackedSequence(
-        fps=25.0,
-        width=size,
-        height=size,
-        focal=1024.0,
-        center=np.array([size / 2, size / 2], np.float32),
-        identity=truth["identity"],
-        rotation=truth["rotation"],
-        translation=truth["translation"],
-        expression=truth["expression"],
-        landmarks=np.zeros((t, 478, 2), np.float32),
-        valid=np.ones(t, bool),
-        fit_error=np.zeros(t, np.float32),
-        face_model_sha256=model.sha256,
-    )
+    seq = synthetic_tracked(model, frames=t, size=size, focal=1024.0)
     verts = camera_vertices(model, seq, np.arange(t), seq.expression)
     print(
         f"# bench_renderer ({platform.machine()}, {os.cpu_count()} CPUs, load {os.getloadavg()[0]:.2f}, "

@@ -26,20 +26,12 @@ from nvp.corpus import load_sample
 from nvp.face_model import default_face_model
 from nvp.media import read_audio
 from nvp.person import predict_expressions, style_from_sample
+from nvp.report import markdown_table
 from nvp.train_audio2exp import audio_expressions, evaluate_person, load_net
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 ASSETS = Path(__file__).resolve().parents[1] / "nvp" / "assets"
 SR = 16000
-
-
-def table(rows: list[dict], cols: list[str]) -> str:
-    out = "| " + " | ".join(cols) + " |\n|" + "---|" * len(cols) + "\n"
-    for r in rows:
-        out += (
-            "| " + " | ".join(f"{r[c]:.4f}" if isinstance(r[c], float) else str(r[c]) for c in cols) + " |\n"
-        )
-    return out
 
 
 def loudness_db(audio: np.ndarray, sr: int, fps: float, n: int) -> np.ndarray:
@@ -100,8 +92,12 @@ def main(argv: list[str] | None = None) -> int:
     for label in [*nets, "phonemes + voice gate", "mean expression"]:
         sel = [r for r in rows if r["method"] == label]
         summary.append({"method": label, **{c: float(np.mean([r[c] for r in sel])) for c in cols[2:-1]}})
-    text = "## Held-out 20 % of validation videos\n\n" + table(rows, cols) + "\n### Mean over videos\n\n"
-    text += table(summary, ["method", *cols[2:-1]])
+    text = (
+        "## Held-out 20 % of validation videos\n\n"
+        + markdown_table(rows, cols)
+        + "\n### Mean over videos\n\n"
+    )
+    text += markdown_table(summary, ["method", *cols[2:-1]])
 
     # robustness: the longest validation person's style driven by other audio (the `nvp dub` path)
     name = max(val_names, key=lambda n: samples[(n, "phonemes")].tracked.num_frames)
@@ -134,7 +130,7 @@ def main(argv: list[str] | None = None) -> int:
         f"{median_mm:.2f} mm. Mean correlation of predicted opening and loudness over "
         f"{len(speech_corr)} clips: {np.mean(speech_corr):.3f}.\n\n"
     )
-    text += table(rob, ["audio", "corr_opening_loudness", "opening_speech_mm", "opening_pause_mm"])
+    text += markdown_table(rob, ["audio", "corr_opening_loudness", "opening_speech_mm", "opening_pause_mm"])
     (args.out / "results.md").write_text(text)
     (args.out / "results.json").write_text(
         json.dumps({"heldout": rows, "summary": summary, "robustness": rob}, indent=2) + "\n"

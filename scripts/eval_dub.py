@@ -86,6 +86,8 @@ def strip(result, out: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from nvp.report import markdown_table
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--targets", nargs="+", default=TARGETS)
     ap.add_argument("--budget-minutes", type=float, default=10.0)
@@ -124,12 +126,7 @@ def main(argv: list[str] | None = None) -> int:
             rows.append(row)
             print(row, flush=True)
         print(f"{target}: {time.perf_counter() - t0:.0f} s", flush=True)
-    cols = list(rows[0])
-    text = "| " + " | ".join(cols) + " |\n|" + "---|" * len(cols) + "\n"
-    for r in rows:
-        text += (
-            "| " + " | ".join(f"{r[c]:.3f}" if isinstance(r[c], float) else str(r[c]) for c in cols) + " |\n"
-        )
+    text = markdown_table(rows, digits=3)
     (args.out / "results.md").write_text(text)
     (args.out / "results.json").write_text(json.dumps(rows, indent=2) + "\n")
     print(text)

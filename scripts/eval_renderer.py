@@ -108,6 +108,8 @@ def evaluate(video: Path, out: Path, preset: str, budget_min: float, cache_dir: 
 
 
 def main(argv: list[str] | None = None) -> int:
+    from nvp.report import markdown_table
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--videos", nargs="+", default=DEFAULT_VIDEOS)
     ap.add_argument("--preset", default="cpu")
@@ -122,12 +124,7 @@ def main(argv: list[str] | None = None) -> int:
         evaluate(SHARED / v, args.out / Path(v).stem, args.preset, args.budget_minutes, args.cache)
         for v in args.videos
     ]
-    cols = list(rows[0])
-    text = "| " + " | ".join(cols) + " |\n|" + "---|" * len(cols) + "\n"
-    for r in rows:
-        text += (
-            "| " + " | ".join(f"{r[c]:.3f}" if isinstance(r[c], float) else str(r[c]) for c in cols) + " |\n"
-        )
+    text = markdown_table(rows, digits=3)
     (args.out / "results.md").write_text(text)
     (args.out / "results.json").write_text(json.dumps(rows, indent=2) + "\n")
     print(text)

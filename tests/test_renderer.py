@@ -7,12 +7,11 @@ import pytest
 import torch
 
 from nvp.media import VideoWriter
-from nvp.tracked import TrackedSequence
 from renderer.crop import crop_boxes, crop_camera, cut, feather, paste
 from renderer.data import Preset, build_cache, camera_vertices, face_region
 from renderer.networks import NeuralTexture, UNet, UNetConfig, count_parameters
 from renderer.train import TrainConfig, load_renderer, train_renderer
-from tracking.synthetic import synthetic_sequence
+from tracking.synthetic import synthetic_tracked
 
 TINY = Preset("tiny", crop=32, base=4, dilated=False, texture_size=32, steps=2, batch=2)
 SIZE = 96
@@ -23,23 +22,8 @@ def footage(tmp_path_factory, face_model):
     """A 12-frame 96x96 video of the face model with a UV-coloured texture, and its exact tracking."""
     from renderer.gl import GLRasterizer
 
-    _, truth = synthetic_sequence(face_model, frames=12, size=SIZE, focal=200.0, noise_px=0.0)
     t = 12
-    seq = TrackedSequence(
-        fps=25.0,
-        width=SIZE,
-        height=SIZE,
-        focal=200.0,
-        center=np.array([SIZE / 2, SIZE / 2], np.float32),
-        identity=truth["identity"],
-        rotation=truth["rotation"],
-        translation=truth["translation"],
-        expression=truth["expression"],
-        landmarks=np.zeros((t, 478, 2), np.float32),
-        valid=np.ones(t, bool),
-        fit_error=np.zeros(t, np.float32),
-        face_model_sha256=face_model.sha256,
-    )
+    seq = synthetic_tracked(face_model, frames=t, size=SIZE, focal=200.0)
     path = tmp_path_factory.mktemp("footage") / "face.mp4"
     with GLRasterizer(SIZE, SIZE) as gl, VideoWriter(path, 25.0, SIZE, SIZE) as w:
         for i in range(t):

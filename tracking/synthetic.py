@@ -60,3 +60,26 @@ def synthetic_sequence(
         vertices=verts,
     )
     return det, truth
+
+
+def synthetic_tracked(model, *, frames=12, size=96, focal=200.0, seed=0):
+    """A ``TrackedSequence`` holding the exact truth of :func:`synthetic_sequence` (for renderer tests and
+    benchmarks that need a posed face without running the tracker)."""
+    from nvp.tracked import TrackedSequence
+
+    _, truth = synthetic_sequence(model, frames=frames, size=size, focal=focal, noise_px=0.0, seed=seed)
+    return TrackedSequence(
+        fps=25.0,
+        width=size,
+        height=size,
+        focal=float(focal),
+        center=np.array([size / 2, size / 2], np.float32),
+        identity=truth["identity"],
+        rotation=truth["rotation"],
+        translation=truth["translation"],
+        expression=truth["expression"],
+        landmarks=np.zeros((frames, 478, 2), np.float32),
+        valid=np.ones(frames, bool),
+        fit_error=np.zeros(frames, np.float32),
+        face_model_sha256=model.sha256,
+    )
