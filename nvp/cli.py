@@ -146,7 +146,8 @@ def _cmd_train_renderer(args: argparse.Namespace) -> int:
     split = int(round(seq.num_frames * args.train_fraction))
     cache = build_cache(args.video, seq, default_face_model(), preset, np.arange(split), not args.quiet)
     budget = None if args.budget_minutes is None else args.budget_minutes * 60
-    cfg = TrainConfig(preset=args.preset, steps=args.steps, budget_s=budget, seed=args.seed)
+    vgg = str(args.vgg_weights) if args.vgg_weights else None
+    cfg = TrainConfig(preset=args.preset, steps=args.steps, budget_s=budget, seed=args.seed, vgg_weights=vgg)
     result = train_renderer(cache, cfg, Path(args.output), device=args.device, progress=not args.quiet)
     print(
         f"trained the {args.preset} renderer on {result['train_frames']} frames: {result['steps']} steps in "
@@ -200,6 +201,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
         steps=args.steps,
         features=args.features,
         device=args.device,
+        vgg_weights=str(args.vgg_weights) if args.vgg_weights else None,
     )
     bundle = fit(args.video, args.output, cfg, progress=not args.quiet)
     st = bundle.manifest["stages"]
@@ -345,6 +347,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--train-fraction", type=float, default=1.0, help="train on this first part of the video")
     p.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
     p.add_argument("--seed", type=int, default=0, help="random seed")
+    p.add_argument("--vgg-weights", type=Path, help="VGG-16 weights (torchvision .pth) for a perceptual loss")
     p.set_defaults(func=_cmd_train_renderer)
 
     p = sub.add_parser("render", help="re-render a tracked video with its trained renderer")
@@ -365,6 +368,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=int, help="renderer training steps (default: the preset's)")
     p.add_argument("--features", choices=("phonemes", "mel"), default="phonemes", help="speech features")
     p.add_argument("--device", default="cpu", help="torch device for training (cpu, cuda)")
+    p.add_argument("--vgg-weights", type=Path, help="VGG-16 weights (torchvision .pth) for a perceptual loss")
     p.set_defaults(func=_cmd_fit)
 
     p = sub.add_parser("dub", help="make a fitted person say new audio")

@@ -42,6 +42,8 @@ class FitConfig:
     """Speech features of the person map (``phonemes`` or ``mel``)."""
     device: str = "cpu"
     """Torch device for renderer training (``cpu`` or ``cuda``)."""
+    vgg_weights: str | None = None
+    """Optional VGG-16 weights file for a perceptual renderer loss (see ``renderer.perceptual``)."""
 
 
 def _stage(name: str) -> float:
@@ -62,7 +64,7 @@ def fit(
         raise MediaError(
             f"{video} has no audio track: nvp fit needs the person's speech to learn their style"
         )
-    builder = BundleBuilder(out, {k: v for k, v in asdict(cfg).items() if k != "device"})
+    builder = BundleBuilder(out, {k: v for k, v in asdict(cfg).items() if k not in ("device", "vgg_weights")})
 
     if not builder.done("target"):
         t0 = _stage("copy target")
@@ -146,7 +148,7 @@ def _train_renderer(builder: BundleBuilder, cfg: FitConfig, progress: bool) -> N
         cache = build_cache(builder.path("target"), seq, model, preset, np.flatnonzero(seq.valid), progress)
         cache.save(frames_path)
     budget = None if cfg.budget_minutes is None else cfg.budget_minutes * 60
-    tcfg = TrainConfig(preset=cfg.preset, steps=cfg.steps, budget_s=budget)
+    tcfg = TrainConfig(preset=cfg.preset, steps=cfg.steps, budget_s=budget, vgg_weights=cfg.vgg_weights)
     train_renderer(cache, tcfg, builder.path("renderer"), device=cfg.device, progress=progress)
     frames_path.unlink()
     (builder.path("renderer") / "checkpoint.pt").unlink(missing_ok=True)

@@ -42,6 +42,10 @@ class TrainConfig:
     """Weight of the 1 - SSIM term."""
     interior_weight: float = 1.0
     """Weight of the masked L1 term on the interior render."""
+    vgg_weights: str | None = None
+    """Optional VGG-16 weights file (torchvision layout) for a perceptual term; never downloaded."""
+    vgg_weight: float = 0.1
+    """Weight of the perceptual term when ``vgg_weights`` is given."""
     checkpoint_every: int = 250
     """Steps between checkpoints."""
     preview_every: int = 500
@@ -154,6 +158,11 @@ def train_renderer(
         )
         os.replace(tmp, ckpt)
 
+    perceptual = None
+    if cfg.vgg_weights:
+        from renderer.perceptual import VGGPerceptual
+
+        perceptual = VGGPerceptual(cfg.vgg_weights).to(device)
     n = len(cache.frames)
     bar = tqdm(total=steps, initial=step, desc=f"train renderer ({preset.name})", disable=not progress)
     running: list[float] = []
@@ -164,6 +173,8 @@ def train_renderer(
         target, geo = cache.batch(idx, device)
         interior, final = net(geo.uv, geo.mask, geo.mouth, blank_face(target, geo.region))
         loss = renderer_loss(interior, final, target, geo.mask, cfg)
+        if perceptual is not None:
+            loss = loss + cfg.vgg_weight * perceptual(final, target)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

@@ -136,3 +136,31 @@ def test_load_renderer_rejects_other_files(tmp_path):
     (tmp_path / "renderer.json").write_text('{"format": "other"}')
     with pytest.raises(FormatError, match="expected nvp.renderer"):
         load_renderer(tmp_path)
+
+
+def test_vgg_perceptual_term_from_a_user_weights_file(footage, face_model, tmp_path):
+    from nvp.errors import FormatError
+    from renderer.perceptual import VGGPerceptual
+
+    torch.manual_seed(0)
+    # a state dict in torchvision's layout
+    layers, c = [], 3
+    for v in [64, 64, "M", 128, 128, "M", 256, 256, 256]:
+        layers += (
+            [torch.nn.MaxPool2d(2)] if v == "M" else [torch.nn.Conv2d(c, v, 3, padding=1), torch.nn.ReLU()]
+        )
+        c = v if v != "M" else c
+    weights = tmp_path / "vgg16.pth"
+    torch.save({f"features.{k}": t for k, t in torch.nn.Sequential(*layers).state_dict().items()}, weights)
+    vgg = VGGPerceptual(weights)
+    a = torch.rand(1, 3, 32, 32)
+    assert vgg(a, a) == 0 and vgg(a, torch.rand(1, 3, 32, 32)) > 0
+    path, seq = footage
+    cache = build_cache(path, seq, face_model, TINY, np.arange(4), progress=False)
+    info = train_renderer(
+        cache, TrainConfig(steps=1, vgg_weights=str(weights)), tmp_path / "r", progress=False, preset=TINY
+    )
+    assert info["steps"] == 1
+    (tmp_path / "bad.pth").write_bytes(b"nope")
+    with pytest.raises(FormatError, match="VGG-16 weights"):
+        VGGPerceptual(tmp_path / "bad.pth")
