@@ -164,3 +164,15 @@ def test_vgg_perceptual_term_from_a_user_weights_file(footage, face_model, tmp_p
     (tmp_path / "bad.pth").write_bytes(b"nope")
     with pytest.raises(FormatError, match="VGG-16 weights"):
         VGGPerceptual(tmp_path / "bad.pth")
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine")
+def test_training_and_rendering_on_cuda(footage, face_model, tmp_path):
+    from renderer.render import FrameRenderer
+
+    path, seq = footage
+    cache = build_cache(path, seq, face_model, TINY, np.arange(4), progress=False)
+    train_renderer(cache, TrainConfig(steps=2), tmp_path, device="cuda", progress=False, preset=TINY)
+    v = camera_vertices(face_model, seq, np.array([0]), seq.expression[:1])[0]
+    with FrameRenderer(tmp_path, face_model, seq, device="cuda") as fr:
+        assert fr.render(np.zeros((SIZE, SIZE, 3), np.uint8), 0, v).shape == (SIZE, SIZE, 3)
