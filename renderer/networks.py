@@ -105,6 +105,8 @@ class NeuralRenderer(nn.Module):
         self.texture = NeuralTexture(texture_channels, texture_size)
         self.interior = UNet(texture_channels + 2, 3, unet)
         self.composite = UNet(6 + 1, 4, unet)
+        with torch.no_grad():  # start by passing the background through (opacity ~0.02); learn where to paint
+            self.composite.out.bias[3] = -4.0
 
     def forward(
         self, uv: torch.Tensor, mask: torch.Tensor, mouth: torch.Tensor, background: torch.Tensor
