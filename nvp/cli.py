@@ -157,35 +157,32 @@ def _cmd_train_renderer(args: argparse.Namespace) -> int:
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
-    import numpy as np
     from tqdm import tqdm
 
     from nvp.face_model import default_face_model
-    from nvp.media import VideoWriter, has_audio, iter_frames, read_audio
+    from nvp.media import VideoWriter, audio_rate, has_audio, iter_frames, read_audio
     from nvp.provenance import synthetic_mark
     from nvp.tracked import TrackedSequence
-    from renderer.data import camera_vertices
     from renderer.render import FrameRenderer
 
     seq = TrackedSequence.load(args.track_dir)
     model = default_face_model()
     start = args.start_frame
     n = seq.num_frames - start if args.frames is None else min(args.frames, seq.num_frames - start)
-    audio = None
+    audio, rate = None, 48000
     if has_audio(args.video):
-        a = read_audio(args.video, 48000, mono=False)
-        audio = a[int(start / seq.fps * 48000) :]
+        rate = audio_rate(args.video)
+        audio = read_audio(args.video, None, mono=False)[int(start / seq.fps * rate) :]
     tags = synthetic_mark("render", renderer=str(args.renderer_dir))
     bar = tqdm(total=n, desc="render", unit="frame", disable=args.quiet)
     with (
         FrameRenderer(args.renderer_dir, model, seq, args.device) as fr,
-        VideoWriter(args.output, seq.fps, seq.width, seq.height, audio, 48000, metadata=tags) as vw,
+        VideoWriter(args.output, seq.fps, seq.width, seq.height, audio, rate, metadata=tags) as vw,
     ):
         for t, frame in zip(
             range(start, start + n), iter_frames(args.video, seq.fps, start, n), strict=False
         ):
-            v = camera_vertices(model, seq, np.array([t]), seq.expression[t : t + 1])[0]
-            vw.write(fr.render(frame, t, v))
+            vw.write(fr.render(frame, t, fr.tracked(t)))
             bar.update(1)
     bar.close()
     print(f"rendered {n} frames → {args.output}")
@@ -286,6 +283,15 @@ def _nanmedian(x):
     return float(np.nanmedian(x)) if np.isfinite(x).any() else float("nan")
 
 
+def _add_renderer_training_args(p: argparse.ArgumentParser, budget_minutes: float | None = None) -> None:
+    """The renderer-training options shared by train-renderer, fit and eval."""
+    p.add_argument("--preset", choices=("cpu", "quality", "paper"), default="cpu", help="renderer preset")
+    p.add_argument("--steps", type=int, help="renderer training steps (default: the preset's)")
+    p.add_argument(
+        "--budget-minutes", type=float, default=budget_minutes, help="stop renderer training after this long"
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="nvp", description="Neural Voice Puppetry: audio-driven facial reenactment."
@@ -339,11 +345,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("track_dir", type=Path, help="output of nvp track for the video")
     p.add_argument("video", type=Path, help="the tracked video")
     p.add_argument("-o", "--output", type=Path, required=True, help="output folder (renderer.json/.npz)")
-    p.add_argument(
-        "--preset", choices=("cpu", "quality", "paper"), default="cpu", help="speed/quality preset"
-    )
-    p.add_argument("--steps", type=int, help="training steps (default: the preset's)")
-    p.add_argument("--budget-minutes", type=float, help="stop training after this many minutes")
+    _add_renderer_training_args(p)
     p.add_argument("--train-fraction", type=float, default=1.0, help="train on this first part of the video")
     p.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
     p.add_argument("--seed", type=int, default=0, help="random seed")
@@ -363,9 +365,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("fit", help="learn a person from 1-3 minutes of their talking video")
     p.add_argument("video", type=Path, help="the person talking (video with audio)")
     p.add_argument("-o", "--output", type=Path, required=True, help="person bundle folder")
-    p.add_argument("--preset", choices=("cpu", "quality", "paper"), default="cpu", help="renderer preset")
-    p.add_argument("--budget-minutes", type=float, help="limit renderer training to this many minutes")
-    p.add_argument("--steps", type=int, help="renderer training steps (default: the preset's)")
+    _add_renderer_training_args(p)
     p.add_argument("--features", choices=("phonemes", "mel"), default="phonemes", help="speech features")
     p.add_argument("--device", default="cpu", help="torch device for training (cpu, cuda)")
     p.add_argument("--vgg-weights", type=Path, help="VGG-16 weights (torchvision .pth) for a perceptual loss")
@@ -390,12 +390,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_verify)
 
     p = sub.add_parser("eval", help="self-reenactment: fit on the first part of a video, re-create the rest")
-    p.add_argument("video", type=Path, help="a talking-head video with audio (≥ 10 s; 1-3 min is best)")
+    p.add_argument("video", type=Path, help="a talking-head video with audio (≥ 5 s; 1-3 min is best)")
     p.add_argument("-o", "--output", type=Path, help="output folder (default: next to the video)")
     p.add_argument("--train-fraction", type=float, default=0.8, help="part used for fitting")
-    p.add_argument("--preset", choices=("cpu", "quality", "paper"), default="cpu", help="renderer preset")
-    p.add_argument("--budget-minutes", type=float, default=30.0, help="renderer training time")
-    p.add_argument("--steps", type=int, help="renderer training steps (default: the preset's)")
+    _add_renderer_training_args(p, budget_minutes=30.0)
     p.add_argument("--side-by-side", action="store_true", help="also write real | visual | audio video")
     p.set_defaults(func=_cmd_eval)
 

@@ -94,7 +94,7 @@ def evaluate_video(
     from nvp.person import PersonStyle, default_audio2exp, predict_expressions
     from nvp.pipeline import FitConfig, dubbed_vertices, fit
     from nvp.tracked import TrackedSequence
-    from renderer.data import camera_vertices
+    from renderer.crop import box_slices
     from renderer.render import FrameRenderer
     from tracking.landmarks import LandmarkDetector
     from tracking.track import track_video
@@ -124,7 +124,7 @@ def evaluate_video(
     if not train_clip.exists():
         _trim(video, train_clip, split, seq.fps)
     fcfg = FitConfig(cfg.preset, cfg.budget_minutes, cfg.steps, cfg.features)
-    bundle = fit(train_clip, out / "person", fcfg, progress)
+    bundle = fit(train_clip, out / "person", fcfg, progress, tracked=seq.head(split))
     t_fit = time.perf_counter() - t0
 
     model = default_face_model()
@@ -143,20 +143,21 @@ def evaluate_video(
         side = VideoWriter(out / "side_by_side.mp4", seq.fps, 3 * seq.width, seq.height)
     bar = tqdm(total=n_test, desc="eval", unit="frame", disable=not progress)
     t_render = 0.0
+    weights = model.mouth_weights()
     try:
         with FrameRenderer(bundle.path("renderer"), model, seq) as fr:
             for j, frame in enumerate(iter_frames(video, fps=seq.fps, start_frame=split, max_frames=n_test)):
                 t = split + j
-                tracked = camera_vertices(model, seq, np.array([t]), seq.expression[t : t + 1])[0]
+                tracked = fr.tracked(t)
                 t1 = time.perf_counter()
                 made = {
                     "visual": fr.render(frame, t, tracked),
-                    "audio": fr.render(frame, t, dubbed_vertices(model, seq, t, expr_audio[j]), tracked),
+                    "audio": fr.render(
+                        frame, t, dubbed_vertices(model, seq, t, expr_audio[j], weights), tracked
+                    ),
                 }
                 t_render += time.perf_counter() - t1
-                cx, cy, s = fr.boxes[t]
-                ys = slice(max(int(cy - s / 2), 0), min(int(cy + s / 2), seq.height))
-                xs = slice(max(int(cx - s / 2), 0), min(int(cx + s / 2), seq.width))
+                ys, xs = box_slices(fr.boxes[t], seq.height, seq.width)
                 for k, m in made.items():
                     img[k][j] = [
                         psnr(frame, m),

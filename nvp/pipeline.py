@@ -23,6 +23,7 @@ import numpy as np
 from nvp import __version__
 from nvp.bundle import BundleBuilder, PersonBundle
 from nvp.errors import MediaError, NvpError
+from nvp.tracked import TrackedSequence
 
 log = logging.getLogger(__name__)
 SAMPLE_RATE = 16000
@@ -53,9 +54,15 @@ def _stage(name: str) -> float:
 
 
 def fit(
-    video: str | Path, out: str | Path, cfg: FitConfig = FitConfig(), progress: bool = True
+    video: str | Path,
+    out: str | Path,
+    cfg: FitConfig = FitConfig(),
+    progress: bool = True,
+    tracked: TrackedSequence | None = None,
 ) -> PersonBundle:
-    """Build a person bundle from a talking-head video (1-3 minutes recommended)."""
+    """Build a person bundle from a talking-head video (1-3 minutes recommended).
+
+    ``tracked``: the video's tracking when the caller already has it (skips the tracking stage)."""
     from nvp.media import probe_video
 
     video, out = Path(video), Path(out)
@@ -77,7 +84,7 @@ def fit(
         from tracking.track import track_video
 
         t0 = _stage("track")
-        seq, _ = track_video(builder.path("target"), progress=progress)
+        seq = tracked if tracked is not None else track_video(builder.path("target"), progress=progress)[0]
         seq.save(builder.path("tracked"))
         builder.mark_done(
             "track",
@@ -90,7 +97,6 @@ def fit(
         from nvp.corpus import VideoSample, features_cached
         from nvp.face_model import default_face_model
         from nvp.person import default_audio2exp, style_from_sample
-        from nvp.tracked import TrackedSequence
 
         t0 = _stage("person style")
         seq = TrackedSequence.load(builder.path("tracked"))
@@ -134,7 +140,6 @@ def fit(
 def _train_renderer(builder: BundleBuilder, cfg: FitConfig, progress: bool) -> None:
     """Cache the footage's crops once (``work/renderer_frames.npz``), then train (resumable)."""
     from nvp.face_model import default_face_model
-    from nvp.tracked import TrackedSequence
     from renderer.data import FrameCache, build_cache, get_preset
     from renderer.train import TrainConfig, train_renderer
 
@@ -154,10 +159,11 @@ def _train_renderer(builder: BundleBuilder, cfg: FitConfig, progress: bool) -> N
     (builder.path("renderer") / "checkpoint.pt").unlink(missing_ok=True)
 
 
-def dubbed_vertices(model, seq, target_index: int, expression: np.ndarray) -> np.ndarray:
+def dubbed_vertices(model, seq, target_index: int, expression: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """``(V, 3)`` camera-frame vertices of a dubbed frame: pose, eyes and brows of target frame
-    ``target_index``, mouth and jaw of ``expression`` ``(K_exp,)`` (blended by ``model.mouth_weights``)."""
-    w = model.mouth_weights()[:, None]
+    ``target_index``, mouth and jaw of ``expression`` ``(K_exp,)``, blended per vertex by ``weights``
+    ``(V,)`` (``model.mouth_weights()``, computed once per video by the caller)."""
+    w = weights[:, None]
     tracked = model.vertices(seq.identity, seq.expression[target_index])
     spoken = model.vertices(seq.identity, expression)
     mixed = (1 - w) * tracked + w * spoken
@@ -211,8 +217,6 @@ def dub(
     from nvp.person import PersonStyle, default_audio2exp, predict_expressions
     from nvp.provenance import synthetic_mark
     from nvp.schedule import target_frame_indices
-    from nvp.tracked import TrackedSequence
-    from renderer.data import camera_vertices
     from renderer.render import FrameRenderer
 
     t_start = time.perf_counter()
@@ -232,6 +236,7 @@ def dub(
     n_out = num_video_frames(duration, seq.fps)
     expression = predict_expressions(mono, rate, seq.fps, style, net, num_frames=n_out)
     order = target_frame_indices(n_out, seq.num_frames)
+    weights = model.mouth_weights()
     tags = synthetic_mark(
         "dub", bundle=bundle.manifest.get("id", bundle.root.name), audio=Path(audio_path).name
     )
@@ -246,9 +251,8 @@ def dub(
     ):
         for j, frame in enumerate(_frames_in_order(bundle.path("target"), order, seq.fps)):
             k = int(order[j])
-            cam = dubbed_vertices(model, seq, k, expression[j])
-            orig = camera_vertices(model, seq, np.array([k]), seq.expression[k : k + 1])[0]
-            vw.write(fr.render(frame, k, cam, orig))
+            cam = dubbed_vertices(model, seq, k, expression[j], weights)
+            vw.write(fr.render(frame, k, cam, fr.tracked(k)))
             bar.update(1)
     bar.close()
     return DubResult(out, n_out, seq.fps, duration, time.perf_counter() - t_start, order, expression)

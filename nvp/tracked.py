@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import shutil
@@ -75,6 +76,12 @@ class TrackedSequence:
     @property
     def num_frames(self) -> int:
         return self.rotation.shape[0]
+
+    def head(self, num_frames: int) -> TrackedSequence:
+        """The first ``num_frames`` frames (same camera and identity)."""
+        n = int(num_frames)
+        per_frame = ("rotation", "translation", "expression", "landmarks", "valid", "fit_error")
+        return dataclasses.replace(self, **{k: getattr(self, k)[:n] for k in per_frame})
 
     def save(self, out_dir: str | Path) -> Path:
         """Write ``tracked.json`` + ``tracked.npz`` into ``out_dir`` atomically (temp dir, then rename)."""

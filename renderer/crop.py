@@ -66,6 +66,15 @@ def cut(frames: torch.Tensor, boxes: torch.Tensor, size: int) -> torch.Tensor:
     return F.grid_sample(frames.float(), grid, mode="bilinear", padding_mode="border", align_corners=False)
 
 
+def box_slices(box: np.ndarray, height: int, width: int) -> tuple[slice, slice]:
+    """Row and column slices of the pixels of a ``height × width`` frame inside crop ``box``."""
+    cx, cy, side = (float(v) for v in box)
+    return (
+        slice(max(int(cy - side / 2), 0), min(int(cy + side / 2), height)),
+        slice(max(int(cx - side / 2), 0), min(int(cx + side / 2), width)),
+    )
+
+
 def feather(size: int, border: float = 0.08, device: str | torch.device = "cpu") -> torch.Tensor:
     """``(1, 1, size, size)`` blend weights: 1 inside, falling smoothly to 0 over ``border`` of the side at
     the crop's edges, so a pasted crop has no visible seam."""

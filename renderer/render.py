@@ -10,7 +10,7 @@ import torch
 from nvp.face_model import FaceModel
 from nvp.tracked import TrackedSequence
 from renderer.crop import cut, feather, paste
-from renderer.data import Rasterizer, blank_face, sequence_boxes
+from renderer.data import Rasterizer, blank_face, camera_vertices, sequence_boxes
 from renderer.train import load_renderer
 
 
@@ -40,6 +40,11 @@ class FrameRenderer:
 
     def __exit__(self, *exc) -> None:
         self.raster.close()
+
+    def tracked(self, index: int) -> np.ndarray:
+        """``(V, 3)`` camera-frame vertices of frame ``index`` as tracked."""
+        expression = self.seq.expression[index : index + 1]
+        return camera_vertices(self.model, self.seq, np.array([index]), expression)[0]
 
     @torch.inference_mode()
     def render(

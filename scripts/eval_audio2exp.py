@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from nvp.audio_features import voice_activity
+from nvp.audio_features import rms_envelope_db, voice_activity
 from nvp.corpus import load_sample
 from nvp.face_model import default_face_model
 from nvp.media import read_audio
@@ -32,17 +32,6 @@ from nvp.train_audio2exp import audio_expressions, evaluate_person, load_net
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 ASSETS = Path(__file__).resolve().parents[1] / "nvp" / "assets"
 SR = 16000
-
-
-def loudness_db(audio: np.ndarray, sr: int, fps: float, n: int) -> np.ndarray:
-    """RMS level in dBFS per video frame (window = one frame period, centred)."""
-    hop = sr / fps
-    out = np.empty(n)
-    for i in range(n):
-        c = int(i * hop)
-        seg = audio[max(c - int(hop / 2), 0) : c + int(hop / 2) + 1]
-        out[i] = 10 * np.log10(np.mean(seg**2) + 1e-10) if len(seg) else -100.0
-    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -111,7 +100,9 @@ def main(argv: list[str] | None = None) -> int:
         audio = np.zeros(SR * 4, np.float32) if clip is None else read_audio(clip, SR)
         expr = predict_expressions(audio, SR, fps, style, net)
         gap = 10 * model.inner_lip_gap(s.tracked.identity, expr)
-        loud = loudness_db(audio, SR, fps, len(gap))
+        # RMS level (dBFS) of the audio shown with each video frame
+        loud = rms_envelope_db(audio, SR, 1 / fps)[: len(gap)]
+        loud = np.pad(loud, (0, len(gap) - len(loud)), mode="edge")
         speech = loud > loud.max() - 30
         pause = np.ones_like(speech) if clip is None else loud < loud.max() - 45
         ok = clip is not None and gap.std() > 0 and speech.any()

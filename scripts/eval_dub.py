@@ -43,8 +43,9 @@ def measure(result, bundle_dir: Path) -> dict:
     g = model.landmark_groups
     lips = np.concatenate([g["lips_outer"], g["lips_inner"]])
     expected = []
+    weights = model.mouth_weights()
     for j, k in enumerate(result.target_frames):
-        v = dubbed_vertices(model, seq, int(k), result.expression[j])[model.landmark_vertices[lips]]
+        v = dubbed_vertices(model, seq, int(k), result.expression[j], weights)[model.landmark_vertices[lips]]
         expected.append(seq.focal * v[:, :2] / v[:, 2:] + seq.center)
     expected = np.array(expected)
     n = min(len(expected), len(det.points))
@@ -86,7 +87,7 @@ def strip(result, out: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from nvp.report import markdown_table
+    from nvp.report import write_results
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--targets", nargs="+", default=TARGETS)
@@ -126,10 +127,7 @@ def main(argv: list[str] | None = None) -> int:
             rows.append(row)
             print(row, flush=True)
         print(f"{target}: {time.perf_counter() - t0:.0f} s", flush=True)
-    text = markdown_table(rows, digits=3)
-    (args.out / "results.md").write_text(text)
-    (args.out / "results.json").write_text(json.dumps(rows, indent=2) + "\n")
-    print(text)
+    print(write_results(rows, args.out))
     return 0
 
 

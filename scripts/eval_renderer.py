@@ -19,34 +19,18 @@ import time
 from pathlib import Path
 
 import numpy as np
-import torch
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "video"
 DEFAULT_VIDEOS = ["dfrf__cnn2_25fps.mp4", "mimictalk__German_20s.mp4", "styletalk__Obama_clip2_av.mp4"]
-
-
-def image_metrics(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
-    """PSNR (dB) and SSIM of two ``(H, W, 3)`` uint8 images."""
-    from kornia.metrics import psnr, ssim
-
-    ta = torch.from_numpy(a).permute(2, 0, 1)[None].float() / 255
-    tb = torch.from_numpy(b).permute(2, 0, 1)[None].float() / 255
-    return float(psnr(ta, tb, 1.0)), float(ssim(ta, tb, 11).mean())
-
-
-def box_slice(box: np.ndarray, h: int, w: int) -> tuple[slice, slice]:
-    cx, cy, side = box
-    return (
-        slice(max(int(cy - side / 2), 0), min(int(cy + side / 2), h)),
-        slice(max(int(cx - side / 2), 0), min(int(cx + side / 2), w)),
-    )
 
 
 def evaluate(video: Path, out: Path, preset: str, budget_min: float, cache_dir: Path) -> dict:
     from nvp.corpus import tracked_cached
     from nvp.face_model import default_face_model
     from nvp.media import iter_frames
-    from renderer.data import FrameCache, build_cache, camera_vertices, get_preset
+    from nvp.metrics import psnr, ssim
+    from renderer.crop import box_slices
+    from renderer.data import FrameCache, build_cache, get_preset
     from renderer.render import FrameRenderer
     from renderer.train import TrainConfig, train_renderer
 
@@ -75,14 +59,12 @@ def evaluate(video: Path, out: Path, preset: str, budget_min: float, cache_dir: 
     }
     with FrameRenderer(out, model, seq) as fr:
         for t, frame in zip(test, iter_frames(video, fps=seq.fps, start_frame=split), strict=False):
-            v = camera_vertices(model, seq, np.array([t]), seq.expression[t : t + 1])[0]
             t0 = time.perf_counter()
-            img = fr.render(frame, int(t), v)
+            img = fr.render(frame, int(t), fr.tracked(int(t)))
             t_render += time.perf_counter() - t0
-            p_full, s_full = image_metrics(frame, img)
-            ys, xs = box_slice(fr.boxes[t], *frame.shape[:2])
-            p_crop, s_crop = image_metrics(frame[ys, xs], img[ys, xs])
-            rows.append((p_full, s_full, p_crop, s_crop))
+            ys, xs = box_slices(fr.boxes[t], *frame.shape[:2])
+            crop, img_crop = frame[ys, xs], img[ys, xs]
+            rows.append((psnr(frame, img), ssim(frame, img), psnr(crop, img_crop), ssim(crop, img_crop)))
             if t in picks.values():
                 keep[int(t)] = np.concatenate([frame[ys, xs], img[ys, xs]], 1)
     from PIL import Image
@@ -108,7 +90,7 @@ def evaluate(video: Path, out: Path, preset: str, budget_min: float, cache_dir: 
 
 
 def main(argv: list[str] | None = None) -> int:
-    from nvp.report import markdown_table
+    from nvp.report import write_results
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--videos", nargs="+", default=DEFAULT_VIDEOS)
@@ -124,10 +106,7 @@ def main(argv: list[str] | None = None) -> int:
         evaluate(SHARED / v, args.out / Path(v).stem, args.preset, args.budget_minutes, args.cache)
         for v in args.videos
     ]
-    text = markdown_table(rows, digits=3)
-    (args.out / "results.md").write_text(text)
-    (args.out / "results.json").write_text(json.dumps(rows, indent=2) + "\n")
-    print(text)
+    print(write_results(rows, args.out))
     return 0
 
 

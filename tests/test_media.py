@@ -169,7 +169,8 @@ def test_odd_size_is_padded_by_edge_replication(tmp_path: Path) -> None:
     assert (info.width, info.height) == (34, 22)
     out = list(iter_frames(path))
     assert len(out) == 5 and out[0].shape == (22, 34, 3)
-    assert np.abs(out[2][:21, :33].astype(int) - frames[2]).mean() < 3.0
+    # lossy 4:2:0 at this tiny size: 2.8-3.1 grey levels depending on encoder threading
+    assert np.abs(out[2][:21, :33].astype(int) - frames[2]).mean() < 3.5
     assert np.abs(out[2][:21, 33].astype(int) - frames[2][:, 32]).mean() < 4.0  # replicated last column
     assert np.abs(out[2][21, :33].astype(int) - frames[2][20]).mean() < 4.0  # replicated last row
 

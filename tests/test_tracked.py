@@ -65,3 +65,14 @@ def test_load_errors(tmp_path):
     (tmp_path / "t" / "tracked.json").write_text(json.dumps(m))
     with pytest.raises(FormatError, match="version"):
         TrackedSequence.load(tmp_path / "t")
+
+
+def test_head_keeps_camera_and_identity(face_model):
+    from tracking.synthetic import synthetic_tracked
+
+    seq = synthetic_tracked(face_model, frames=10)
+    first = seq.head(4)
+    assert first.num_frames == 4 and first.landmarks.shape[0] == first.valid.shape[0] == 4
+    np.testing.assert_array_equal(first.expression, seq.expression[:4])
+    np.testing.assert_array_equal(first.identity, seq.identity)
+    assert first.focal == seq.focal
