@@ -85,6 +85,15 @@ def feather(size: int, border: float = 0.08, device: str | torch.device = "cpu")
     return (w[:, None] * w[None, :])[None, None]
 
 
+def region_weight(region: torch.Tensor, grow: float = 0.03) -> torch.Tensor:
+    """Paste weights ``(B, 1, S, S)`` for a crop whose rendered part is ``region`` ``(B, 1, S, S)``: 1 up
+    to ``grow`` of the side around the region, falling to 0 at three times that. Pixels outside keep the
+    footage at its full resolution instead of a resampled (softer) copy from the crop."""
+    r = max(1, round(grow * region.shape[-1]))
+    grown = F.max_pool2d(region, 4 * r + 1, stride=1, padding=2 * r)
+    return F.avg_pool2d(grown, 2 * r + 1, stride=1, padding=r, count_include_pad=False)
+
+
 def paste(frame: torch.Tensor, crop: torch.Tensor, box: np.ndarray, weight: torch.Tensor) -> torch.Tensor:
     """Blend ``crop`` ``(C, S, S)`` back into ``frame`` ``(C, H, W)`` (both float) at ``box``.
 

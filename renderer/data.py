@@ -67,12 +67,16 @@ class FrameGeometry:
         mouth: ``(B, 1, S, S)`` float32 1 on the mouth-interior triangles.
         region: ``(B, 1, S, S)`` float32 1 on the face region blanked in the background input (see
             :func:`face_region`).
+        lower: ``(B, 1, S, S)`` float32 the face model's mouth weights (1 on lips and jaw, 0 on the eyes and
+            upper face) interpolated over the mesh, 0 outside it; made when rendering, not cached for
+            training (None there).
     """
 
     uv: torch.Tensor
     mask: torch.Tensor
     mouth: torch.Tensor
     region: torch.Tensor
+    lower: torch.Tensor | None = None
 
 
 def camera_vertices(
@@ -101,6 +105,7 @@ class Rasterizer:
         self._gl = GLRasterizer(size, size)
         self._out = empty_output(size, size)
         self._mouth_tris = torch.from_numpy(np.flatnonzero(model.triangle_regions["mouth_interior"]))
+        self._tri_weights = torch.from_numpy(model.mouth_weights()[model.triangles])  # (F, 3)
 
     def close(self) -> None:
         self._gl.release()
@@ -115,8 +120,13 @@ class Rasterizer:
         )
         mouth = torch.isin(r.triangle_id, self._mouth_tris)
         mask = r.mask.float()[None, None]
+        lower = (self._tri_weights[r.triangle_id.clamp_min(0)] * r.barycentric).sum(-1) * r.mask
         return FrameGeometry(
-            uv=r.uv.clone()[None], mask=mask, mouth=mouth.float()[None, None], region=face_region(mask)
+            uv=r.uv.clone()[None],
+            mask=mask,
+            mouth=mouth.float()[None, None],
+            region=face_region(mask),
+            lower=lower[None, None],
         )
 
 

@@ -9,9 +9,13 @@ import torch
 
 from nvp.face_model import FaceModel
 from nvp.tracked import TrackedSequence
-from renderer.crop import cut, feather, paste
-from renderer.data import Rasterizer, blank_face, camera_vertices, sequence_boxes
+from renderer.crop import cut, feather, paste, region_weight
+from renderer.data import Rasterizer, blank_face, camera_vertices, face_region, sequence_boxes
 from renderer.train import load_renderer
+
+LOWER_FACE = 0.02
+"""Mouth weight (``FaceModel.mouth_weights``) above which a mesh pixel is part of the re-rendered lower
+face."""
 
 
 class FrameRenderer:
@@ -56,14 +60,18 @@ class FrameRenderer:
         box = self.boxes[index]
         f, c = self.seq.focal, self.seq.center
         geo = self.raster(vertices_cam, f, c, box)
-        region = geo.region
+        region, lower = geo.region, geo.lower
         if original_cam is not None:
-            region = torch.maximum(region, self.raster(original_cam, f, c, box).region)
+            orig = self.raster(original_cam, f, c, box)
+            region, lower = torch.maximum(region, orig.region), torch.maximum(lower, orig.lower)
         img = torch.from_numpy(frame).permute(2, 0, 1).float()
         crop = cut(img[None], torch.from_numpy(box[None]).float(), self.preset.crop) / 255
         dev = self.device
         _, final = self.net(
             geo.uv.to(dev), geo.mask.to(dev), geo.mouth.to(dev), blank_face(crop.to(dev), region.to(dev))
         )
-        out = paste(img, final[0].cpu() * 255, box, self.weight)
+        # only the lower face (where the geometry can differ from the footage) and its surroundings are
+        # pasted: eyes, brows and forehead keep the footage's own pixels at full resolution
+        paint = face_region((lower > LOWER_FACE).float()) * region
+        out = paste(img, final[0].cpu() * 255, box, self.weight * region_weight(paint))
         return out.clamp(0, 255).round().byte().permute(1, 2, 0).numpy()

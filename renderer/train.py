@@ -23,7 +23,7 @@ from renderer.networks import NeuralRenderer, UNetConfig, count_parameters
 
 log = logging.getLogger(__name__)
 FORMAT = "nvp.renderer"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: the interior render is kept inside the mesh
 
 
 @dataclass(frozen=True)

@@ -7,9 +7,9 @@ import pytest
 import torch
 
 from nvp.media import VideoWriter
-from renderer.crop import crop_boxes, crop_camera, cut, feather, paste
+from renderer.crop import crop_boxes, crop_camera, cut, feather, paste, region_weight
 from renderer.data import Preset, build_cache, camera_vertices, face_region
-from renderer.networks import NeuralTexture, UNet, UNetConfig, count_parameters
+from renderer.networks import NeuralRenderer, NeuralTexture, UNet, UNetConfig, count_parameters, inner_weight
 from renderer.train import TrainConfig, load_renderer, train_renderer
 from tracking.synthetic import synthetic_tracked
 
@@ -95,6 +95,38 @@ def test_face_region_grows_the_mask():
     mask[..., 20:30, 20:30] = 1
     region = face_region(mask, grow=0.1)
     assert region[..., 15:35, 15:35].min() == 1 and region[..., :10].max() == 0
+
+
+def test_region_weight_covers_the_region_and_leaves_the_rest():
+    region = torch.zeros(1, 1, 100, 100)
+    region[..., 40:60, 40:60] = 1
+    w = region_weight(region, grow=0.03)  # 3 px: 1 within 3 px of the region, 0 from 9 px away
+    assert w[..., 37:63, 37:63].min() == pytest.approx(1.0)
+    assert w[..., :31, :].max() == 0 and w[..., 70:, :].max() == 0
+
+
+def test_inner_weight_is_zero_on_the_silhouette_and_one_deep_inside():
+    mask = torch.zeros(1, 1, 100, 100)
+    mask[..., 20:80, 20:80] = 1
+    w = inner_weight(mask, erode=0.02)  # 2 px: 0 on the silhouette, 1 from 5 px inside
+    assert w[..., :21, :].max() == 0 and w[..., 21, 50] < 0.25
+    assert w[..., 25:75, 25:75].min() == pytest.approx(1.0)
+    row = w[0, 0, 50, 15:30]
+    assert (row[1:] >= row[:-1]).all()  # rises monotonically into the mesh
+
+
+def test_final_image_keeps_the_interior_inside_and_the_footage_outside():
+    torch.manual_seed(0)
+    net = NeuralRenderer(UNetConfig(base=4), texture_channels=4, texture_size=16)
+    mask = torch.zeros(1, 1, 64, 64)
+    mask[..., 16:48, 16:48] = 1
+    uv = torch.rand(1, 64, 64, 2)
+    background = torch.rand(1, 3, 64, 64) * (1 - face_region(mask))
+    interior, final = net(uv, mask, torch.zeros_like(mask), background)
+    inside = (slice(None), slice(None), slice(24, 40), slice(24, 40))
+    assert torch.allclose(final[inside], interior[inside])
+    far = (slice(None), slice(None), slice(0, 4), slice(None))  # untouched footage (opacity starts ~0.02)
+    assert (final[far] - background[far]).abs().max() < 0.05
 
 
 def test_training_resumes_exactly_and_renders(footage, face_model, tmp_path):
