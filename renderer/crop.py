@@ -12,6 +12,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from renderer.masks import box_blur, dilate
+
 
 def _gaussian_smooth(x: np.ndarray, sigma: float) -> np.ndarray:
     """Gaussian smoothing along axis 0 with edge padding; ``sigma`` in samples (0 = unchanged)."""
@@ -90,8 +92,7 @@ def region_weight(region: torch.Tensor, grow: float = 0.03) -> torch.Tensor:
     to ``grow`` of the side around the region, falling to 0 at three times that. Pixels outside keep the
     footage at its full resolution instead of a resampled (softer) copy from the crop."""
     r = max(1, round(grow * region.shape[-1]))
-    grown = F.max_pool2d(region, 4 * r + 1, stride=1, padding=2 * r)
-    return F.avg_pool2d(grown, 2 * r + 1, stride=1, padding=r, count_include_pad=False)
+    return box_blur(dilate(region, 2 * r), r)
 
 
 def paste(frame: torch.Tensor, crop: torch.Tensor, box: np.ndarray, weight: torch.Tensor) -> torch.Tensor:

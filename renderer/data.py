@@ -13,12 +13,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from tqdm import tqdm
 
 from nvp.face_model import FaceModel
 from nvp.tracked import TrackedSequence
 from renderer.crop import crop_boxes, crop_camera, cut
+from renderer.masks import dilate
 
 log = logging.getLogger(__name__)
 
@@ -133,8 +133,7 @@ class Rasterizer:
 def face_region(mask: torch.Tensor, grow: float = 0.06) -> torch.Tensor:
     """``mask`` ``(B, 1, S, S)`` grown by ``grow`` of the crop side: the part of the footage that the
     renderer replaces (pass the union of the old and new masks when the geometry changes)."""
-    r = max(1, int(round(grow * mask.shape[-1])))
-    return F.max_pool2d(mask, 2 * r + 1, stride=1, padding=r)
+    return dilate(mask, max(1, int(round(grow * mask.shape[-1]))))
 
 
 def blank_face(crops: torch.Tensor, region: torch.Tensor) -> torch.Tensor:

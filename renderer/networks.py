@@ -13,6 +13,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from renderer import masks
+
 
 class NeuralTexture(nn.Module):
     """``C × N × N`` learned features, sampled bilinearly by UV.
@@ -129,8 +131,7 @@ def inner_weight(mask: torch.Tensor, erode: float = 0.015) -> torch.Tensor:
     silhouette, rising to 1 over ``2 · erode`` of the crop side inside it, so the silhouette, which never
     matches the real face contour exactly, is left to the compositing network."""
     r = max(1, round(erode * mask.shape[-1]))
-    core = -F.max_pool2d(-mask, 2 * r + 3, stride=1, padding=r + 1)
-    return F.avg_pool2d(core, 2 * r + 1, stride=1, padding=r, count_include_pad=False)
+    return masks.box_blur(masks.erode(mask, r + 1), r)
 
 
 def count_parameters(module: nn.Module) -> int:

@@ -208,3 +208,17 @@ def test_training_and_rendering_on_cuda(footage, face_model, tmp_path):
     v = camera_vertices(face_model, seq, np.array([0]), seq.expression[:1])[0]
     with FrameRenderer(tmp_path, face_model, seq, device="cuda") as fr:
         assert fr.render(np.zeros((SIZE, SIZE, 3), np.uint8), 0, v).shape == (SIZE, SIZE, 3)
+
+
+@pytest.mark.parametrize("r", [1, 4, 12])
+def test_separable_morphology_equals_square_pooling(r):
+    import torch.nn.functional as F
+
+    from renderer.masks import box_blur, dilate, erode
+
+    x = (torch.rand(2, 1, 40, 56) > 0.9).float() * torch.rand(2, 1, 40, 56)
+    k = 2 * r + 1
+    assert torch.equal(dilate(x, r), F.max_pool2d(x, k, stride=1, padding=r))
+    assert torch.equal(erode(x, r), -F.max_pool2d(-x, k, stride=1, padding=r))
+    square = F.avg_pool2d(x, k, stride=1, padding=r, count_include_pad=False)
+    assert torch.allclose(box_blur(x, r), square, atol=1e-6)
