@@ -262,11 +262,52 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         steps=args.steps,
         side_by_side=args.side_by_side,
     )
-    out = Path(args.output) if args.output else Path(args.video).with_suffix("") / "nvp-eval"
-    r = evaluate_video(args.video, out, cfg, progress=not args.quiet)
-    print((out / "eval.md").read_text())
-    print(f"eval.json, eval.md, eval.png → {out} ({r['frames']['test']} held-out frames)")
-    return 0
+    if len(args.video) == 1:
+        out = Path(args.output) if args.output else Path(args.video[0]).with_suffix("") / "nvp-eval"
+        r = evaluate_video(args.video[0], out, cfg, progress=not args.quiet)
+        print((out / "eval.md").read_text())
+        print(f"eval.json, eval.md, eval.png → {out} ({r['frames']['test']} held-out frames)")
+        return 0
+    from nvp.errors import NvpError
+    from nvp.report import write_results
+
+    root = Path(args.output) if args.output else Path("nvp-eval")
+    rows, failed = [], 0
+    for video in args.video:
+        try:
+            r = evaluate_video(video, root / Path(video).stem, cfg, progress=not args.quiet)
+        except NvpError as e:  # one clear line per failed video; the others still run
+            print(f"nvp eval: {video}: {e}", file=sys.stderr)
+            failed += 1
+            continue
+        for kind in ("visual", "audio"):
+            m = r[kind]
+            rows.append(
+                {
+                    "video": r["video"],
+                    "driven by": kind,
+                    "test frames": r["frames"]["test"],
+                    "fit min": r["fit_minutes"],
+                    **{k: m[k] for k in SUMMARY_METRICS if k in m},
+                }
+            )
+    if rows:
+        print(write_results(rows, root))
+        print(f"per-video eval.json / eval.md / eval.png in {root}/<video>; summary in {root}/results.md")
+    return 1 if failed else 0
+
+
+SUMMARY_METRICS = (
+    "psnr_full",
+    "ssim_full",
+    "psnr_crop",
+    "ssim_crop",
+    "mouth_landmark_error_iod",
+    "closure_f1",
+    "av_offset_frames",
+    "mouth_jitter_ratio",
+)
+"""The ``nvp eval`` metrics in the summary table of a multi-video run (every number is in eval.json)."""
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -390,8 +431,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_verify)
 
     p = sub.add_parser("eval", help="self-reenactment: fit on the first part of a video, re-create the rest")
-    p.add_argument("video", type=Path, help="a talking-head video with audio (≥ 5 s; 1-3 min is best)")
-    p.add_argument("-o", "--output", type=Path, help="output folder (default: next to the video)")
+    p.add_argument(
+        "video", type=Path, nargs="+", help="talking-head videos with audio (≥ 5 s each; 1-3 min is best)"
+    )
+    p.add_argument(
+        "-o", "--output", type=Path, help="output folder (one subfolder per video when given several)"
+    )
     p.add_argument("--train-fraction", type=float, default=0.8, help="part used for fitting")
     _add_renderer_training_args(p, budget_minutes=30.0)
     p.add_argument("--side-by-side", action="store_true", help="also write real | visual | audio video")

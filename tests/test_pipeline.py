@@ -158,3 +158,8 @@ def test_eval_needs_audio_and_enough_frames(tmp_path, demo_clip):
     assert_one_line_error(nvp("eval", path, "-o", tmp_path / "e"), "no audio")
     proc = nvp("eval", demo_clip.path, "-o", tmp_path / "e2", "--steps", 1)
     assert_one_line_error(proc, "held-out part is only")
+    # several videos: each failure is one line, the others still run, and the exit code says so
+    proc = nvp("eval", path, demo_clip.path, "-o", tmp_path / "e3", "--steps", 1)
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr
+    assert "no audio" in proc.stderr and "held-out part is only" in proc.stderr
+    assert not (tmp_path / "e3" / "results.md").exists()
