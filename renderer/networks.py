@@ -97,9 +97,10 @@ class NeuralRenderer(nn.Module):
     """Texture + interior U-Net + compositing U-Net.
 
     Inputs per crop: ``uv`` ``(B, H, W, 2)``, ``mask`` ``(B, 1, H, W)`` (face mesh coverage), ``mouth``
-    ``(B, 1, H, W)`` (mouth-interior triangles, so the network knows where teeth and tongue go) and
-    ``background`` ``(B, 3, H, W)`` (the frame with the face region blanked). Returns the interior render
-    and the final image, both ``(B, 3, H, W)`` in [0, 1].
+    ``(B, 1, H, W)`` (mouth-interior triangles, so the network knows where teeth and tongue go),
+    ``background`` ``(B, 3, H, W)`` (the frame with the face region blanked) and ``region`` ``(B, 1, H, W)``
+    (that blanked region). Returns the interior render and the final image, both ``(B, 3, H, W)`` in
+    [0, 1].
     """
 
     def __init__(self, unet: UNetConfig, texture_channels: int = 16, texture_size: int = 256) -> None:
@@ -111,7 +112,12 @@ class NeuralRenderer(nn.Module):
             self.composite.out.bias[3] = -4.0
 
     def forward(
-        self, uv: torch.Tensor, mask: torch.Tensor, mouth: torch.Tensor, background: torch.Tensor
+        self,
+        uv: torch.Tensor,
+        mask: torch.Tensor,
+        mouth: torch.Tensor,
+        background: torch.Tensor,
+        region: torch.Tensor,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         feats = self.texture(uv, mask)
         interior = self.interior(torch.cat([feats, mask, mouth], 1)) * mask
@@ -120,7 +126,8 @@ class NeuralRenderer(nn.Module):
         # plus an opacity, so pixels it leaves alone keep the footage exactly (no blur, no drift). Well
         # inside the mesh the interior render is kept as is: a second pass through a small U-Net only
         # blurs it (measured: the composite was visibly softer than the interior render it was given).
-        alpha = out[:, 3:]
+        # inside the blanked region it must paint (opacity 1): the blank (black) never shows through
+        alpha = torch.maximum(out[:, 3:], region)
         seam = alpha * out[:, :3] + (1 - alpha) * background
         keep = inner_weight(mask)
         return interior, keep * interior + (1 - keep) * seam

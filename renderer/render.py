@@ -68,7 +68,11 @@ class FrameRenderer:
         crop = cut(img[None], torch.from_numpy(box[None]).float(), self.preset.crop) / 255
         dev = self.device
         _, final = self.net(
-            geo.uv.to(dev), geo.mask.to(dev), geo.mouth.to(dev), blank_face(crop.to(dev), region.to(dev))
+            geo.uv.to(dev),
+            geo.mask.to(dev),
+            geo.mouth.to(dev),
+            blank_face(crop.to(dev), region.to(dev)),
+            region.to(dev),
         )
         # only the lower face (where the geometry can differ from the footage) and its surroundings are
         # pasted: eyes, brows and forehead keep the footage's own pixels at full resolution

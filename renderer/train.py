@@ -23,7 +23,7 @@ from renderer.networks import NeuralRenderer, UNetConfig, count_parameters
 
 log = logging.getLogger(__name__)
 FORMAT = "nvp.renderer"
-FORMAT_VERSION = 2  # 2: the interior render is kept inside the mesh
+FORMAT_VERSION = 3  # 2: the interior render is kept inside the mesh; 3: opaque inside the region
 
 
 @dataclass(frozen=True)
@@ -171,7 +171,7 @@ def train_renderer(
         net.train()
         idx = np.random.default_rng([cfg.seed, step]).integers(0, n, preset.batch)
         target, geo = cache.batch(idx, device)
-        interior, final = net(geo.uv, geo.mask, geo.mouth, blank_face(target, geo.region))
+        interior, final = net(geo.uv, geo.mask, geo.mouth, blank_face(target, geo.region), geo.region)
         loss = renderer_loss(interior, final, target, geo.mask, cfg)
         if perceptual is not None:
             loss = loss + cfg.vgg_weight * perceptual(final, target)

@@ -121,12 +121,15 @@ def test_final_image_keeps_the_interior_inside_and_the_footage_outside():
     mask = torch.zeros(1, 1, 64, 64)
     mask[..., 16:48, 16:48] = 1
     uv = torch.rand(1, 64, 64, 2)
-    background = torch.rand(1, 3, 64, 64) * (1 - face_region(mask))
-    interior, final = net(uv, mask, torch.zeros_like(mask), background)
+    region = face_region(mask)
+    background = torch.rand(1, 3, 64, 64) * (1 - region)
+    interior, final = net(uv, mask, torch.zeros_like(mask), background, region)
     inside = (slice(None), slice(None), slice(24, 40), slice(24, 40))
     assert torch.allclose(final[inside], interior[inside])
     far = (slice(None), slice(None), slice(0, 4), slice(None))  # untouched footage (opacity starts ~0.02)
     assert (final[far] - background[far]).abs().max() < 0.05
+    blanked = (region > 0) & (mask == 0)  # the ring the compositing network paints: never black
+    assert final.mean(1, keepdim=True)[blanked].min() > 0.2
 
 
 def test_training_resumes_exactly_and_renders(footage, face_model, tmp_path):
