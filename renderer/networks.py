@@ -126,7 +126,7 @@ class NeuralRenderer(nn.Module):
         # plus an opacity, so pixels it leaves alone keep the footage exactly (no blur, no drift). Well
         # inside the mesh the interior render is kept as is: a second pass through a small U-Net only
         # blurs it (measured: the composite was visibly softer than the interior render it was given).
-        # inside the blanked region it must paint (opacity 1): the blank (black) never shows through
+        # Inside the blanked region the opacity is 1, so the blank (black) never shows through.
         alpha = torch.maximum(out[:, 3:], region)
         seam = alpha * out[:, :3] + (1 - alpha) * background
         keep = inner_weight(mask)
