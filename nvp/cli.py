@@ -252,51 +252,6 @@ def _cmd_verify(args: argparse.Namespace) -> int:
     return 0 if r.marked else 1
 
 
-def _cmd_eval(args: argparse.Namespace) -> int:
-    from nvp.evaluate import EvalConfig, evaluate_video
-
-    cfg = EvalConfig(
-        train_fraction=args.train_fraction,
-        preset=args.preset,
-        budget_minutes=args.budget_minutes,
-        steps=args.steps,
-        side_by_side=args.side_by_side,
-    )
-    if len(args.video) == 1:
-        out = Path(args.output) if args.output else Path(args.video[0]).with_suffix("") / "nvp-eval"
-        r = evaluate_video(args.video[0], out, cfg, progress=not args.quiet)
-        print((out / "eval.md").read_text())
-        print(f"eval.json, eval.md, eval.png → {out} ({r['frames']['test']} held-out frames)")
-        return 0
-    from nvp.errors import NvpError
-    from nvp.report import write_results
-
-    root = Path(args.output) if args.output else Path("nvp-eval")
-    rows, failed = [], 0
-    for video in args.video:
-        try:
-            r = evaluate_video(video, root / Path(video).stem, cfg, progress=not args.quiet)
-        except NvpError as e:  # one clear line per failed video; the others still run
-            print(f"nvp eval: {video}: {e}", file=sys.stderr)
-            failed += 1
-            continue
-        for kind in ("visual", "audio"):
-            m = r[kind]
-            rows.append(
-                {
-                    "video": r["video"],
-                    "driven by": kind,
-                    "test frames": r["frames"]["test"],
-                    "fit min": r["fit_minutes"],
-                    **{k: m[k] for k in SUMMARY_METRICS if k in m},
-                }
-            )
-    if rows:
-        print(write_results(rows, root))
-        print(f"per-video eval.json / eval.md / eval.png in {root}/<video>; summary in {root}/results.md")
-    return 1 if failed else 0
-
-
 SUMMARY_METRICS = (
     "psnr_full",
     "ssim_full",
@@ -308,6 +263,51 @@ SUMMARY_METRICS = (
     "mouth_jitter_ratio",
 )
 """The ``nvp eval`` metrics in the summary table of a multi-video run (every number is in eval.json)."""
+
+
+def _cmd_eval(args: argparse.Namespace) -> int:
+    from nvp.errors import NvpError
+    from nvp.evaluate import EvalConfig, evaluate_video
+    from nvp.report import write_results
+
+    cfg = EvalConfig(
+        train_fraction=args.train_fraction,
+        preset=args.preset,
+        budget_minutes=args.budget_minutes,
+        steps=args.steps,
+        side_by_side=args.side_by_side,
+    )
+    several = len(args.video) > 1
+    if args.output:
+        root = Path(args.output)
+    else:
+        root = Path("nvp-eval") if several else Path(args.video[0]).with_suffix("") / "nvp-eval"
+    rows, failed = [], 0
+    for video in args.video:
+        out = root / Path(video).stem if several else root
+        try:
+            r = evaluate_video(video, out, cfg, progress=not args.quiet)
+        except NvpError as e:
+            if not several:
+                raise  # main() prints it as the one error line
+            print(f"nvp eval: {video}: {e}", file=sys.stderr)  # the other videos still run
+            failed += 1
+            continue
+        print((out / "eval.md").read_text())
+        print(f"eval.json, eval.md, eval.png → {out} ({r['frames']['test']} held-out frames)")
+        for kind in ("visual", "audio"):
+            rows.append(
+                {
+                    "video": r["video"],
+                    "driven by": kind,
+                    "test frames": r["frames"]["test"],
+                    "fit min": r["fit_minutes"],
+                    **{k: r[kind][k] for k in SUMMARY_METRICS if k in r[kind]},
+                }
+            )
+    if several and rows:
+        print(write_results(rows, root))
+    return 1 if failed else 0
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:

@@ -153,7 +153,7 @@ def evaluate_video(
                 made = {
                     "visual": fr.render(frame, t, tracked),
                     "audio": fr.render(
-                        frame, t, dubbed_vertices(model, seq, t, expr_audio[j], weights), tracked
+                        frame, t, dubbed_vertices(model, seq, t, expr_audio[j], weights, tracked), tracked
                     ),
                 }
                 t_render += time.perf_counter() - t1

@@ -159,15 +159,20 @@ def _train_renderer(builder: BundleBuilder, cfg: FitConfig, progress: bool) -> N
     (builder.path("renderer") / "checkpoint.pt").unlink(missing_ok=True)
 
 
-def dubbed_vertices(model, seq, target_index: int, expression: np.ndarray, weights: np.ndarray) -> np.ndarray:
+def dubbed_vertices(
+    model, seq, target_index: int, expression: np.ndarray, weights: np.ndarray, tracked_cam: np.ndarray
+) -> np.ndarray:
     """``(V, 3)`` camera-frame vertices of a dubbed frame: pose, eyes and brows of target frame
-    ``target_index``, mouth and jaw of ``expression`` ``(K_exp,)``, blended per vertex by ``weights``
-    ``(V,)`` (``model.mouth_weights()``, computed once per video by the caller)."""
+    ``target_index`` (``tracked_cam``, its tracked camera-frame vertices, which the caller renders anyway),
+    mouth and jaw of ``expression`` ``(K_exp,)``, blended per vertex by ``weights`` ``(V,)``
+    (``model.mouth_weights()``, computed once per video). The pose is rigid, so blending in camera space
+    equals blending in model space and posing."""
     w = weights[:, None]
-    tracked = model.vertices(seq.identity, seq.expression[target_index])
-    spoken = model.vertices(seq.identity, expression)
-    mixed = (1 - w) * tracked + w * spoken
-    return mixed @ seq.rotation[target_index].T + seq.translation[target_index]
+    spoken = (
+        model.vertices(seq.identity, expression) @ seq.rotation[target_index].T
+        + seq.translation[target_index]
+    )
+    return (1 - w) * tracked_cam + w * spoken
 
 
 def _frames_in_order(video: Path, indices: np.ndarray, fps: float, chunk: int = 48):
@@ -251,8 +256,9 @@ def dub(
     ):
         for j, frame in enumerate(_frames_in_order(bundle.path("target"), order, seq.fps)):
             k = int(order[j])
-            cam = dubbed_vertices(model, seq, k, expression[j], weights)
-            vw.write(fr.render(frame, k, cam, fr.tracked(k)))
+            tracked = fr.tracked(k)
+            cam = dubbed_vertices(model, seq, k, expression[j], weights, tracked)
+            vw.write(fr.render(frame, k, cam, tracked))
             bar.update(1)
     bar.close()
     return DubResult(out, n_out, seq.fps, duration, time.perf_counter() - t_start, order, expression)

@@ -35,6 +35,7 @@ def measure(result, bundle_dir: Path) -> dict:
     from nvp.metrics import interocular_distance
     from nvp.pipeline import dubbed_vertices
     from nvp.tracked import TrackedSequence
+    from renderer.data import camera_vertices
     from tracking.detect import detect_video
 
     model = default_face_model()
@@ -45,7 +46,10 @@ def measure(result, bundle_dir: Path) -> dict:
     expected = []
     weights = model.mouth_weights()
     for j, k in enumerate(result.target_frames):
-        v = dubbed_vertices(model, seq, int(k), result.expression[j], weights)[model.landmark_vertices[lips]]
+        tracked = camera_vertices(model, seq, np.array([k]), seq.expression[k : k + 1])[0]
+        v = dubbed_vertices(model, seq, int(k), result.expression[j], weights, tracked)[
+            model.landmark_vertices[lips]
+        ]
         expected.append(seq.focal * v[:, :2] / v[:, 2:] + seq.center)
     expected = np.array(expected)
     n = min(len(expected), len(det.points))
