@@ -78,8 +78,12 @@ class UNet(nn.Module):
             self.up.append(nn.Sequential(nn.Conv2d(c_prev + ch[i], ch[i], 3, padding=d, dilation=d), act))
             c_prev = ch[i]
         self.out = nn.Conv2d(c_prev, out_ch, 3, padding=1)
+        # channels-last (NHWC) weights and activations: oneDNN's CPU convolutions run faster on them
+        # (measured on this 2-core machine: cpu-preset inference 1.2-1.4x, training 1.1x; same results)
+        self.to(memory_format=torch.channels_last)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        x = x.contiguous(memory_format=torch.channels_last)
         skips = []
         for layer in self.down:
             x = layer(x)
