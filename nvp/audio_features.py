@@ -4,8 +4,9 @@ Two kinds of features are produced from mono audio (resampled to 16 kHz, NaN -> 
 
 ``"phonemes"`` (D = 191, 50 frames/s)
     Per-frame phoneme log-posteriors of the conformer CTC phoneme recogniser shipped inside the
-    ``hama==1.7.0`` wheel (Apache-2.0; weights ``hama/assets/asr_waveform.hama``, run by its bundled native
-    library, CPU only, single-threaded per call). The 191 classes are hama's decoder vocabulary: an
+    ``hama==1.7.0`` wheel (Apache-2.0; weights ``hama/assets/asr_waveform.hama``, run in PyTorch by
+    :mod:`nvp.phoneme_model`, which matches hama's own native engine and is about 12x faster). The 191
+    classes are hama's decoder vocabulary: an
     IPA-based multilingual phone set (English-centred, with Korean tense/aspirated stops, tones, diacritics
     and a few CJK characters), plus ``<pad> <sos> <eos> <unk>``, space, ``<wb>`` (word boundary, index
     189) and the CTC ``<blank>`` (index 190), which dominates pauses; see :func:`phoneme_labels`. Output
@@ -27,17 +28,16 @@ Long audio is processed in chunks so that memory beyond the input audio and the 
 * ``mel`` is local (each frame sees 400 samples), so chunks of 30 s that carry the 200 samples of context
   each frame needs give exactly the whole-file result; a chunk's temporaries are about 20 MB.
 * ``phonemes``: the hama model attends over its whole input (every output frame depends on the whole
-  clip; appending 5 s of silence to a clip moves about 4 % of the frame argmaxes) and accepts at most
-  1500 output frames (29.98 s of audio; longer input is silently truncated). Audio longer than
+  clip; appending 5 s of silence to a clip moves about 4 % of the frame argmaxes) and hama's engine
+  accepts at most 1500 output frames (29.98 s of audio), so the model was only ever run, and the shipped
+  Audio2ExpressionNet only trained, on chunks of at most that length. Audio longer than
   :data:`PHONEME_CHUNK_S` (28 s) is therefore cut into the fewest equal chunks of at most 28 s, evenly
   spread so that neighbours overlap by at least :data:`PHONEME_OVERLAP_S` (4 s); in each overlap the two
   chunks' posteriors are cross-faded linearly (mixing probabilities, so every frame stays a distribution).
   Chunked output is therefore not bit-equal to a single pass: on real 30 s speech clips cut into 10-20 s
   chunks, 96-99 % of frames keep their argmax class and the mean L1 distance between frame distributions
-  is 0.02-0.08. Up to ``workers`` chunks run at once in threads (the native call releases the GIL), each
-  thread with its own hama session. A 28 s hama call needs about 90 MB of working memory (about 3.2 MB per
-  second of chunk), so peak memory grows by about 90 MB per worker, not with the file length (10-minute
-  file, 2 workers: 441 MB peak RSS of which 167 MB are imports; mel: 269 MB).
+  is 0.02-0.08. Chunks run one after the other (PyTorch uses the cores inside each); a 28 s chunk needs
+  30-60 MB of working memory, so peak memory does not grow with the file length.
 
 Resampling to 16 kHz (``scipy.signal.resample_poly``) is done on the whole input at once; read files with
 :func:`features_from_file` (which decodes straight to 16 kHz) to avoid that copy.
@@ -48,8 +48,7 @@ from __future__ import annotations
 import logging
 import math
 import os
-import threading
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable
 from dataclasses import dataclass
 from fractions import Fraction
 from functools import lru_cache
@@ -57,8 +56,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from nvp.errors import NvpError
+from nvp.phoneme_model import N_FFT
 
 logger = logging.getLogger(__name__)
 
@@ -98,7 +99,8 @@ PHONEME_LOG_FLOOR = -30.0
 """Log-posteriors are clamped to ``>= -30`` (probability ~1e-13): below that the values only reflect
 numerical noise and context-dependent drift of classes that are far from being recognised."""
 PHONEME_MAX_FRAMES = 1500
-"""hama's positional limit: at most 1500 output frames (29.98 s) per call; longer input is truncated."""
+"""Longest phoneme chunk in output frames (29.98 s): hama's engine cuts longer input, so features beyond
+it were never seen in training."""
 PHONEME_CHUNK_S = 28.0
 """Default chunk length in seconds for phoneme extraction (below the 29.98 s limit)."""
 PHONEME_OVERLAP_S = 4.0
@@ -300,70 +302,28 @@ def _extract_mel(audio: np.ndarray, chunk_s: float) -> np.ndarray:
 # ------------------------------------------------------------------------------------------- phonemes
 
 
-def _hama() -> Any:
-    """The hama module (imported on first use: it loads a native library)."""
-    try:
-        import hama
-        from hama import _engine
-    except ImportError as exc:  # pragma: no cover - depends on the environment
-        raise NvpError(
-            "phoneme features need the 'hama' package (pip install hama==1.7.0); "
-            f"it could not be imported: {exc}"
-        ) from exc
-    if not _engine.available():  # pragma: no cover - depends on the platform
-        raise NvpError("phoneme features need hama's native library, which is not available on this platform")
-    return hama
-
-
-class _PhonemeRecognizer:
-    """One hama ASR session per thread; call with 16 kHz float32 audio of at most 29.98 s."""
-
-    def __init__(self) -> None:
-        self._local = threading.local()
-
-    def _model(self) -> Any:
-        model = getattr(self._local, "model", None)
-        if model is None:
-            model = _hama().ASRModel()
-            if len(model.decoder_tokens) != PHONEME_DIM:
-                raise NvpError(
-                    f"expected hama's phone set to have {PHONEME_DIM} classes, "
-                    f"found {len(model.decoder_tokens)}"
-                )
-            self._local.model = model
-        return model
-
-    def __call__(self, audio: np.ndarray) -> np.ndarray:
-        """``(len(audio) // 320 + 1, 191)`` float32 log-posteriors (not floored)."""
-        model = self._model()
-        expected = len(audio) // PHONEME_HOP + 1
-        if expected > PHONEME_MAX_FRAMES:
-            raise NvpError(
-                f"expected at most {PHONEME_MAX_FRAMES} frames per hama call, asked for {expected}"
-            )
-        wav = np.ascontiguousarray(audio, dtype=np.float32)[None]
-        log_probs, lengths = model.session.run(
-            ["log_probs", "out_lengths"], {"waveform": wav, "waveform_lengths": np.array([wav.shape[1]])}
-        )
-        n = int(np.asarray(lengths).reshape(-1)[0])
-        if n != expected or log_probs.shape[-1] != PHONEME_DIM:
-            raise NvpError(
-                f"expected hama to return ({expected}, {PHONEME_DIM}) log-posteriors "
-                f"for {len(audio)} samples, "
-                f"found {n} frames of {log_probs.shape[-1]}"
-            )
-        return log_probs[0, :n]
-
-
 @lru_cache(maxsize=1)
-def _recognizer() -> _PhonemeRecognizer:
-    return _PhonemeRecognizer()
+def _recognizer() -> Callable[[np.ndarray], np.ndarray]:
+    """hama's phoneme recogniser (:mod:`nvp.phoneme_model`): 16 kHz float32 audio → ``(len // 320 + 1,
+    191)`` float32 log-posteriors (not floored)."""
+    from nvp.phoneme_model import load_phoneme_model
+
+    model = load_phoneme_model()
+
+    def recognize(audio: np.ndarray) -> np.ndarray:
+        with torch.inference_mode():
+            wav = torch.from_numpy(np.ascontiguousarray(audio, dtype=np.float32))[None]
+            return model(wav)[0].numpy()
+
+    return recognize
 
 
 @lru_cache(maxsize=1)
 def phoneme_labels() -> tuple[str, ...]:
     """The 191 class names of the ``"phonemes"`` features, in channel order (hama's decoder tokens)."""
-    return tuple(_hama().ASRModel().decoder_tokens)
+    from hama.vocab import Vocabulary
+
+    return (*Vocabulary.load().decoder, "<wb>", "<blank>")
 
 
 def _phoneme_chunks(n: int, chunk: int, overlap: int) -> list[tuple[int, int]]:
@@ -389,8 +349,10 @@ def _crossfade_weights(ranges: list[tuple[int, int]], i: int) -> np.ndarray:
     return w
 
 
-def _extract_phonemes(audio: np.ndarray, chunk_s: float, workers: int) -> np.ndarray:
+def _extract_phonemes(audio: np.ndarray, chunk_s: float) -> np.ndarray:
     n = len(audio) // PHONEME_HOP + 1
+    if len(audio) <= N_FFT // 2:  # the front end's reflect padding needs more than 200 samples
+        audio = np.pad(audio, (0, N_FFT // 2 + 1 - len(audio)))
     chunk = min(int(round(chunk_s * PHONEME_RATE)), PHONEME_MAX_FRAMES - 1)
     overlap = min(int(round(PHONEME_OVERLAP_S * PHONEME_RATE)), chunk // 3)
     if chunk < 3 or (n > chunk and overlap < 1):
@@ -399,27 +361,15 @@ def _extract_phonemes(audio: np.ndarray, chunk_s: float, workers: int) -> np.nda
     ranges = _phoneme_chunks(n, chunk, overlap)
     if len(ranges) == 1:
         return np.maximum(recognize(audio), PHONEME_LOG_FLOOR).astype(np.float32)
-
-    def run(r: tuple[int, int]) -> np.ndarray:
-        f0, f1 = r
-        # samples up to the end of frame f1 - 1's hop: hama returns f1 - f0 (+ 1) frames for them
-        seg = audio[f0 * PHONEME_HOP : min(len(audio), f1 * PHONEME_HOP)]
-        return recognize(seg)[: f1 - f0]
-
     logger.debug("phonemes: %d frames in %d chunks %s", n, len(ranges), ranges)
     probs = np.zeros((n, PHONEME_DIM), dtype=np.float32)  # cross-faded probabilities
     total = np.zeros((n, 1), dtype=np.float32)  # sum of weights per frame
-    workers = max(1, min(workers, len(ranges)))
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        # bounded look-ahead: at most `workers` chunks are in flight or waiting to be merged
-        pending = {i: pool.submit(run, ranges[i]) for i in range(workers)}
-        for i, (f0, f1) in enumerate(ranges):
-            lp = pending.pop(i).result()
-            if i + workers < len(ranges):
-                pending[i + workers] = pool.submit(run, ranges[i + workers])
-            w = _crossfade_weights(ranges, i)[:, None]
-            probs[f0:f1] += np.exp(lp) * w
-            total[f0:f1] += w
+    for i, (f0, f1) in enumerate(ranges):
+        # samples up to the end of frame f1 - 1's hop: the model returns f1 - f0 (+ 1) frames for them
+        lp = recognize(audio[f0 * PHONEME_HOP : min(len(audio), f1 * PHONEME_HOP)])[: f1 - f0]
+        w = _crossfade_weights(ranges, i)[:, None]
+        probs[f0:f1] += np.exp(lp) * w
+        total[f0:f1] += w
     probs /= total
     with np.errstate(divide="ignore"):
         np.log(probs, out=probs)
@@ -436,7 +386,6 @@ def extract_features(
     kind: str = "phonemes",
     *,
     chunk_s: float | None = None,
-    workers: int | None = None,
 ) -> AudioFeatures:
     """Speech features of mono audio.
 
@@ -448,14 +397,13 @@ def extract_features(
         chunk_s: chunk length in seconds for bounded-memory processing; default 28 s for phonemes
             (at most 29.98 s is used) and 30 s for mel. Mel results do not depend on it; phoneme results
             do slightly (see the module docstring).
-        workers: phoneme chunks processed in parallel threads; default ``min(4, os.cpu_count())``.
 
     Returns:
         :class:`AudioFeatures` with ``N = S16 // 320 + 1`` (phonemes) or ``S16 // 160 + 1`` (mel) frames,
         where ``S16`` is the number of samples at 16 kHz.
 
     Raises:
-        NvpError: empty or non-mono audio, a bad sample rate or kind, or hama unavailable.
+        NvpError: empty or non-mono audio, a bad sample rate or kind, or hama not installed.
     """
     if kind not in FEATURE_KINDS:
         raise NvpError(f"feature kind must be one of {FEATURE_KINDS}, found {kind!r}")
@@ -466,9 +414,7 @@ def extract_features(
     if kind == "mel":
         values = _extract_mel(wav, MEL_CHUNK_S if chunk_s is None else chunk_s)
         return AudioFeatures(values=values, rate=MEL_RATE, kind="mel", duration_s=duration)
-    if workers is None:
-        workers = min(4, os.cpu_count() or 1)
-    values = _extract_phonemes(wav, PHONEME_CHUNK_S if chunk_s is None else chunk_s, workers)
+    values = _extract_phonemes(wav, PHONEME_CHUNK_S if chunk_s is None else chunk_s)
     return AudioFeatures(values=values, rate=PHONEME_RATE, kind="phonemes", duration_s=duration)
 
 

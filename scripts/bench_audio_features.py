@@ -4,11 +4,11 @@
 
 1. Speed on a real speech clip (``../shared/data/audio/latentsync__demo2_audio.wav``, 19.8 s, English,
    16 kHz) when ../shared is present, otherwise on a synthetic syllable-like signal of the same length:
-   ``extract_features`` for ``phonemes`` (hama) and ``mel``, plus ``frame_windows`` at 25 fps, as
-   × real time (audio seconds per wall-clock second; best of ``--repeats``).
+   ``extract_features`` for ``phonemes`` (hama's model in PyTorch) and ``mel``, plus ``frame_windows`` at
+   25 fps, as × real time (audio seconds per wall-clock second; best of ``--repeats``).
 2. Peak memory: the clip tiled to ``--minutes`` minutes and written as a 16 kHz wav; each kind runs
    ``features_from_file`` + ``frame_windows`` in a fresh process, which reports ``ru_maxrss`` after its
-   imports and at the end, and the wall time (× real time, with the default worker threads).
+   imports and at the end, and the wall time (× real time, torch's default threads).
 
 The target for later is features + Audio2ExpressionNet prediction at >= 50× real time overall. The
 machine may be shared with other jobs, so timings are noisy; the load average is printed.
@@ -68,8 +68,6 @@ def child(kind: str, path: str) -> None:
     """Run in a fresh process: features of a file plus windows; print JSON with memory and time."""
     from nvp.audio_features import features_from_file, frame_windows
 
-    if kind == "phonemes":
-        import hama  # noqa: F401  (count the native library in the baseline)
     import scipy.fft  # noqa: F401
     import scipy.ndimage  # noqa: F401
     import scipy.signal  # noqa: F401
@@ -155,8 +153,13 @@ def main() -> None:
             f"{seconds / t_feat:7.1f}x real time; frame_windows @25 fps: {t_win * 1000:6.1f} ms "
             f"({seconds / t_win:7.0f}x); together {seconds / (t_feat + t_win):7.1f}x"
         )
-    t1 = best_time(lambda: extract_features(audio, SR, kind="phonemes", workers=1), 1)
-    say(f"phonemes with workers=1 (one hama call of {seconds:.1f} s): {seconds / t1:.1f}x real time")
+    from hama import ASRModel, _engine
+
+    if _engine.available():  # the same weights in hama's own native engine, for comparison
+        session = ASRModel().session
+        feed = {"waveform": audio[None].astype(np.float32), "waveform_lengths": np.array([len(audio)])}
+        t1 = best_time(lambda: session.run(["log_probs", "out_lengths"], feed), args.repeats)
+        say(f"phonemes in hama's native engine (reference, not used by nvp): {seconds / t1:.1f}x real time")
 
     say(f"\n## {args.minutes:g}-minute file (clip tiled), fresh process per kind")
     reps = int(np.ceil(args.minutes * 60 / seconds))

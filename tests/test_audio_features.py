@@ -298,7 +298,7 @@ def test_phoneme_chunk_plan(n):
 
 def test_chunk_assembly_is_exact_for_a_local_recognizer(monkeypatch):
     """With a stand-in recogniser whose frames depend only on their own 320 samples, chunked phoneme
-    extraction (overlaps, cross-fades, worker threads) must reproduce the single pass exactly."""
+    extraction (overlaps, cross-fades) must reproduce the single pass exactly."""
 
     def fake(audio: np.ndarray) -> np.ndarray:
         n = len(audio) // 320 + 1
@@ -310,9 +310,9 @@ def test_chunk_assembly_is_exact_for_a_local_recognizer(monkeypatch):
 
     monkeypatch.setattr(audio_features, "_recognizer", lambda: fake)
     audio = np.tile(speechlike(7.0, seed=3), 10)  # 70 s
-    whole = audio_features._extract_phonemes(audio, chunk_s=1000.0, workers=1)  # one pass (fake has no limit)
-    for chunk_s, workers in [(28.0, 2), (5.3, 3)]:
-        chunked = extract_features(audio, SR, kind="phonemes", chunk_s=chunk_s, workers=workers)
+    whole = audio_features._extract_phonemes(audio, chunk_s=1000.0)  # one pass (fake has no limit)
+    for chunk_s in [28.0, 5.3]:
+        chunked = extract_features(audio, SR, kind="phonemes", chunk_s=chunk_s)
         assert chunked.values.shape == (70 * SR // 320 + 1, PHONEME_DIM)
         np.testing.assert_allclose(chunked.values, whole, atol=1e-4)
 
@@ -321,13 +321,46 @@ def test_phonemes_chunked_close_to_whole():
     """hama attends over its whole input, so chunking changes posteriors slightly (module docstring)."""
     audio = babble(12.0, seed=5)
     whole = extract_features(audio, SR, kind="phonemes")  # one 12 s pass
-    chunked = extract_features(audio, SR, kind="phonemes", chunk_s=5.0, workers=2)
+    chunked = extract_features(audio, SR, kind="phonemes", chunk_s=5.0)
     assert chunked.values.shape == whole.values.shape == (12 * SR // 320 + 1, PHONEME_DIM)
     assert (whole.values.argmax(1) != 190).mean() > 0.05  # not all blank: the test is not trivial
     p_whole, p_chunked = np.exp(whole.values), np.exp(chunked.values)
     np.testing.assert_allclose(p_chunked.sum(axis=1), 1.0, atol=1e-3)
     assert (whole.values.argmax(1) == chunked.values.argmax(1)).mean() > 0.85
     assert np.abs(p_whole - p_chunked).sum(axis=1).mean() < 0.3
+
+
+def test_phoneme_model_matches_hamas_engine():
+    """nvp.phoneme_model runs hama's weights in PyTorch; hama's own native engine is the reference."""
+    from hama import ASRModel, _engine
+
+    if not _engine.available():
+        pytest.skip("hama's native engine is not available on this platform")
+    audio = babble(8.0, seed=11)
+    session = ASRModel().session
+    ref, lengths = session.run(
+        ["log_probs", "out_lengths"], {"waveform": audio[None], "waveform_lengths": np.array([len(audio)])}
+    )
+    ref = np.maximum(ref[0, : int(np.asarray(lengths).reshape(-1)[0])], -30.0)
+    ours = extract_features(audio, SR, kind="phonemes").values
+    assert ours.shape == ref.shape == (len(audio) // 320 + 1, PHONEME_DIM)
+    assert (ref.argmax(1) != 190).mean() > 0.05  # not all blank
+    assert (ours.argmax(1) == ref.argmax(1)).mean() > 0.995
+    assert np.abs(np.exp(ours) - np.exp(ref)).max() < 0.02
+
+
+def test_phonemes_of_very_short_audio():
+    for n in (1, 150, 200, 201, 319, 320):
+        assert extract_features(np.full(n, 0.1, np.float32), SR).values.shape == (n // 320 + 1, PHONEME_DIM)
+
+
+def test_phoneme_model_rejects_a_foreign_archive(tmp_path):
+    from nvp.phoneme_model import load_phoneme_model
+
+    bad = tmp_path / "x.hama"
+    bad.write_bytes(b"PK\x03\x04 not a hama archive")
+    with pytest.raises(NvpError, match="not a hama weights archive"):
+        load_phoneme_model(bad)
 
 
 # ---------------------------------------------------------------------------------------------- files
