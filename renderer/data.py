@@ -40,6 +40,11 @@ class Preset:
     """Default training steps."""
     batch: int
     """Crops per training step."""
+    region_grow: float = 0.03
+    """The face region that is blanked in the background input and re-rendered: the mesh grown by this
+    fraction of the crop side (see :func:`face_region`). 0.03 rather than 0.06: the band around the mesh
+    is painted by the compositing network from the surrounding footage, and a wider one loses detail
+    there (white collar under the chin on dfrf__cnn2: 29.2 → 31.9 dB crop PSNR, same training time)."""
 
 
 PRESETS = {
@@ -97,11 +102,11 @@ def sequence_boxes(model: FaceModel, seq: TrackedSequence) -> np.ndarray:
 class Rasterizer:
     """Rasterizes face-model vertices into crops (moderngl), returning ``FrameGeometry``."""
 
-    def __init__(self, model: FaceModel, size: int) -> None:
+    def __init__(self, model: FaceModel, size: int, grow: float) -> None:
         from renderer.gl import GLRasterizer
         from renderer.raster import empty_output
 
-        self.model, self.size = model, size
+        self.model, self.size, self.grow = model, size, grow
         self._gl = GLRasterizer(size, size)
         self._out = empty_output(size, size)
         self._mouth_tris = torch.from_numpy(np.flatnonzero(model.triangle_regions["mouth_interior"]))
@@ -125,12 +130,12 @@ class Rasterizer:
             uv=r.uv.clone()[None],
             mask=mask,
             mouth=mouth.float()[None, None],
-            region=face_region(mask),
+            region=face_region(mask, self.grow),
             lower=lower[None, None],
         )
 
 
-def face_region(mask: torch.Tensor, grow: float = 0.06) -> torch.Tensor:
+def face_region(mask: torch.Tensor, grow: float) -> torch.Tensor:
     """``mask`` ``(B, 1, S, S)`` grown by ``grow`` of the crop side: the part of the footage that the
     renderer replaces (pass the union of the old and new masks when the geometry changes)."""
     return dilate(mask, max(1, int(round(grow * mask.shape[-1]))))
@@ -213,7 +218,7 @@ def build_cache(
         boxes=boxes[frames].astype(np.float32),
     )
     row = {int(f): i for i, f in enumerate(frames)}
-    rast = Rasterizer(model, s)
+    rast = Rasterizer(model, s, preset.region_grow)
     last = int(frames.max()) + 1 if n else 0
     try:
         bar = tqdm(total=n, desc="prepare renderer frames", disable=not progress, unit="frame")

@@ -36,7 +36,7 @@ class FrameRenderer:
         self.net, self.preset, self.manifest = load_renderer(renderer_dir, device)
         self.model, self.seq, self.device = model, seq, device
         self.boxes = sequence_boxes(model, seq)
-        self.raster = Rasterizer(model, self.preset.crop)
+        self.raster = Rasterizer(model, self.preset.crop, self.preset.region_grow)
         self.weight = feather(self.preset.crop)
 
     def __enter__(self) -> FrameRenderer:
@@ -76,6 +76,6 @@ class FrameRenderer:
         )
         # only the lower face (where the geometry can differ from the footage) and its surroundings are
         # pasted: eyes, brows and forehead keep the footage's own pixels at full resolution
-        paint = face_region((lower > LOWER_FACE).float()) * region
+        paint = face_region((lower > LOWER_FACE).float(), self.preset.region_grow) * region
         out = paste(img, final[0].cpu() * 255, box, self.weight * region_weight(paint))
         return out.clamp(0, 255).round().byte().permute(1, 2, 0).numpy()

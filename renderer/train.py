@@ -23,7 +23,8 @@ from renderer.networks import NeuralRenderer, UNetConfig, count_parameters
 
 log = logging.getLogger(__name__)
 FORMAT = "nvp.renderer"
-FORMAT_VERSION = 3  # 2: the interior render is kept inside the mesh; 3: opaque inside the region
+FORMAT_VERSION = 4  # 2: the interior render is kept inside the mesh; 3: opaque inside the region;
+# 4: the preset records its region_grow (version 3 files were all trained with 0.06 and still load)
 
 
 @dataclass(frozen=True)
@@ -92,12 +93,12 @@ def load_renderer(out_dir: Path, device: str = "cpu") -> tuple[NeuralRenderer, P
     js = Path(out_dir) / "renderer.json"
     try:
         m = json.loads(js.read_text())
-        if m.get("format") != FORMAT or m.get("version") != FORMAT_VERSION:
+        if m.get("format") != FORMAT or m.get("version") not in (3, FORMAT_VERSION):
             raise FormatError(
                 f"{js}: expected {FORMAT} version {FORMAT_VERSION}, "
                 f"found {m.get('format')} {m.get('version')}"
             )
-        preset = Preset(**m["preset"])
+        preset = Preset(**{"region_grow": 0.06, **m["preset"]})
         net = make_renderer(preset)
         with np.load(js.parent / "renderer.npz") as z:
             net.load_state_dict({k: torch.from_numpy(z[k]) for k in z.files})

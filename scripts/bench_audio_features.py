@@ -66,11 +66,11 @@ def maxrss_mb() -> float:
 
 def child(kind: str, path: str) -> None:
     """Run in a fresh process: features of a file plus windows; print JSON with memory and time."""
-    from nvp.audio_features import features_from_file, frame_windows
-
     import scipy.fft  # noqa: F401
     import scipy.ndimage  # noqa: F401
     import scipy.signal  # noqa: F401
+
+    from nvp.audio_features import features_from_file, frame_windows
 
     base = maxrss_mb()
     t0 = time.perf_counter()

@@ -121,7 +121,7 @@ def test_final_image_keeps_the_interior_inside_and_the_footage_outside():
     mask = torch.zeros(1, 1, 64, 64)
     mask[..., 16:48, 16:48] = 1
     uv = torch.rand(1, 64, 64, 2)
-    region = face_region(mask)
+    region = face_region(mask, 0.06)
     background = torch.rand(1, 3, 64, 64) * (1 - region)
     interior, final = net(uv, mask, torch.zeros_like(mask), background, region)
     inside = (slice(None), slice(None), slice(24, 40), slice(24, 40))
@@ -171,6 +171,20 @@ def test_load_renderer_rejects_other_files(tmp_path):
     (tmp_path / "renderer.json").write_text('{"format": "other"}')
     with pytest.raises(FormatError, match="expected nvp.renderer"):
         load_renderer(tmp_path)
+
+
+def test_renderer_files_keep_the_region_they_were_trained_with(tmp_path):
+    import json
+
+    from renderer.train import make_renderer, save_renderer
+
+    save_renderer(make_renderer(TINY), tmp_path, TINY, {})
+    assert load_renderer(tmp_path)[1].region_grow == TINY.region_grow == 0.03
+    # version 3 files (before the preset recorded it) were trained with a 6 % region and still load
+    m = json.loads((tmp_path / "renderer.json").read_text())
+    del m["preset"]["region_grow"]
+    (tmp_path / "renderer.json").write_text(json.dumps({**m, "version": 3}))
+    assert load_renderer(tmp_path)[1].region_grow == 0.06
 
 
 def test_vgg_perceptual_term_from_a_user_weights_file(footage, face_model, tmp_path):
