@@ -56,10 +56,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 
 from nvp.errors import NvpError
-from nvp.phoneme_model import N_FFT
 
 logger = logging.getLogger(__name__)
 
@@ -306,6 +304,8 @@ def _extract_mel(audio: np.ndarray, chunk_s: float) -> np.ndarray:
 def _recognizer() -> Callable[[np.ndarray], np.ndarray]:
     """hama's phoneme recogniser (:mod:`nvp.phoneme_model`): 16 kHz float32 audio → ``(len // 320 + 1,
     191)`` float32 log-posteriors (not floored)."""
+    import torch
+
     from nvp.phoneme_model import load_phoneme_model
 
     model = load_phoneme_model()
@@ -350,6 +350,8 @@ def _crossfade_weights(ranges: list[tuple[int, int]], i: int) -> np.ndarray:
 
 
 def _extract_phonemes(audio: np.ndarray, chunk_s: float) -> np.ndarray:
+    from nvp.phoneme_model import N_FFT
+
     n = len(audio) // PHONEME_HOP + 1
     if len(audio) <= N_FFT // 2:  # the front end's reflect padding needs more than 200 samples
         audio = np.pad(audio, (0, N_FFT // 2 + 1 - len(audio)))

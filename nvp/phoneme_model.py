@@ -71,6 +71,13 @@ def read_archive(path: Path) -> dict[str, np.ndarray]:
     buf = Path(path).read_bytes()
     if buf[:6] != b"HAMAPK":
         raise NvpError(f"{path}: not a hama weights archive")
+    try:
+        return _tensors(buf)
+    except (struct.error, IndexError, KeyError, ValueError, UnicodeDecodeError) as exc:
+        raise NvpError(f"{path}: damaged hama weights archive ({exc})") from exc
+
+
+def _tensors(buf: bytes) -> dict[str, np.ndarray]:
     (count,) = struct.unpack_from("<I", buf, 8)
     pos, entries = 12, []
     for _ in range(count):

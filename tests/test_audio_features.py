@@ -354,12 +354,15 @@ def test_phonemes_of_very_short_audio():
         assert extract_features(np.full(n, 0.1, np.float32), SR).values.shape == (n // 320 + 1, PHONEME_DIM)
 
 
-def test_phoneme_model_rejects_a_foreign_archive(tmp_path):
-    from nvp.phoneme_model import load_phoneme_model
+def test_phoneme_model_rejects_foreign_and_damaged_archives(tmp_path):
+    from nvp.phoneme_model import hama_archive, load_phoneme_model
 
     bad = tmp_path / "x.hama"
     bad.write_bytes(b"PK\x03\x04 not a hama archive")
     with pytest.raises(NvpError, match="not a hama weights archive"):
+        load_phoneme_model(bad)
+    bad.write_bytes(hama_archive().read_bytes()[:5000])  # truncated
+    with pytest.raises(NvpError, match="damaged hama weights archive"):
         load_phoneme_model(bad)
 
 
