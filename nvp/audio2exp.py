@@ -115,14 +115,16 @@ class Audio2ExpressionNet(nn.Module):
         self.filter = ExpressionFilter(cfg)
 
     def sequence(self, windows: torch.Tensor, use_filter: bool = True, batch: int = 2048) -> torch.Tensor:
-        """Audio-expressions ``(T, A)`` for a whole sequence of feature windows ``(T, W, D)``.
+        """Audio-expressions ``(T, A)`` for a whole sequence of feature windows ``(T, W, D)``."""
+        raw = torch.cat([self.per_frame(windows[s : s + batch]) for s in range(0, len(windows), batch)])
+        return self.smooth(raw, batch) if use_filter else raw
+
+    def smooth(self, raw: torch.Tensor, batch: int = 2048) -> torch.Tensor:
+        """The expression-aware filter over a whole sequence of per-frame predictions ``(T, A)``.
 
         Frame t is filtered over per-frame predictions t-F/2 … t+F/2-1 (edge-padded), so the output is
         aligned with the input frames.
         """
-        raw = torch.cat([self.per_frame(windows[s : s + batch]) for s in range(0, len(windows), batch)])
-        if not use_filter:
-            return raw
         f = self.cfg.filter_window
         padded = torch.cat([raw[:1].expand(f // 2, -1), raw, raw[-1:].expand(f - f // 2 - 1, -1)])
         stacks = padded.unfold(0, f, 1).transpose(1, 2)  # (T, F, A)

@@ -480,8 +480,9 @@ def frame_windows(
     window: int = 16,
     window_rate: float = DEFAULT_WINDOW_RATE,
     block: int = 2048,
+    first: int = 0,
 ) -> np.ndarray:
-    """Per-video-frame windows of features, ``(T, window, D)`` float32.
+    """Per-video-frame windows of features, ``(T - first, window, D)`` float32.
 
     Video frame ``i`` is at time ``t_i = i / fps`` seconds. Its window holds the features at times
     ``t_i + (k - window // 2) / window_rate`` for ``k = 0 .. window - 1``, so position ``window // 2`` is
@@ -501,9 +502,10 @@ def frame_windows(
         window: samples per window (W).
         window_rate: samples per second inside a window.
         block: video frames processed at a time (bounds temporary memory to a few times the output block).
+        first: the first video frame to make a window for (windows of a long file can be made in blocks).
 
     Returns:
-        ``(T, W, D)`` float32 windows.
+        ``(T - first, W, D)`` float32 windows of frames ``first .. T - 1``.
     """
     if not (math.isfinite(fps) and fps > 0):
         raise NvpError(f"expected a positive video frame rate, found {fps!r}")
@@ -516,6 +518,8 @@ def frame_windows(
     t_count = num_video_frames(features.duration_s, fps) if num_frames is None else int(num_frames)
     if t_count < 0:
         raise NvpError(f"expected a non-negative number of video frames, found {num_frames}")
+    if not 0 <= first <= t_count:
+        raise NvpError(f"expected a first frame between 0 and {t_count}, found {first}")
 
     src = features.values
     factor = features.rate / window_rate
@@ -523,8 +527,8 @@ def frame_windows(
         src = _tent_smooth(src, factor)
     n = features.num_frames
     offsets = (np.arange(window, dtype=np.float64) - window // 2) / window_rate
-    out = np.empty((t_count, window, features.dim), dtype=np.float32)
-    for b0 in range(0, t_count, block):
+    out = np.empty((t_count - first, window, features.dim), dtype=np.float32)
+    for b0 in range(first, t_count, block):
         b1 = min(t_count, b0 + block)
         times = np.arange(b0, b1, dtype=np.float64) / fps
         pos = (times[:, None] + offsets[None, :]) * features.rate
@@ -534,7 +538,7 @@ def frame_windows(
         i0 = np.floor(pos).astype(np.int64)
         i1 = np.minimum(i0 + 1, n - 1)
         w = (pos - i0).astype(np.float32)[..., None]
-        out[b0:b1] = src[i0] * (1.0 - w) + src[i1] * w
+        out[b0 - first : b1 - first] = src[i0] * (1.0 - w) + src[i1] * w
     return out
 
 

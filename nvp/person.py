@@ -18,6 +18,9 @@ from nvp.corpus import VideoSample
 from nvp.errors import FormatError
 from nvp.face_model import FaceModel
 
+WINDOW_BLOCK = 2048
+"""Video frames whose feature windows :func:`predict_expressions` builds at a time (25 MB for phonemes)."""
+
 FORMAT_VERSION = 1
 ASSETS = Path(__file__).parent / "assets"
 
@@ -127,11 +130,26 @@ def predict_expressions(
     :func:`nvp.audio_features.voice_activity`) blend smoothly towards the person's rest expression, so
     pauses and silence give a closed mouth.
     """
-    from nvp.audio_features import extract_features, frame_windows, speaker_normalized, voice_activity
-    from nvp.train_audio2exp import audio_expressions
+    import torch
+
+    from nvp.audio_features import (
+        extract_features,
+        frame_windows,
+        num_video_frames,
+        speaker_normalized,
+        voice_activity,
+    )
 
     feats = speaker_normalized(extract_features(audio, sample_rate, kind=style.feature_kind))
-    windows = frame_windows(feats, fps, num_frames=num_frames).astype(np.float32)
-    expr = style.person_map.apply(audio_expressions(net, windows))
+    t = num_video_frames(feats.duration_s, fps) if num_frames is None else int(num_frames)
+    # windows are made block by block: all of them at once would be (T, 16, 191) float32, 37 MB a minute
+    net.eval()
+    with torch.no_grad():
+        raw = [
+            net.per_frame(torch.from_numpy(frame_windows(feats, fps, min(t, s + WINDOW_BLOCK), first=s)))
+            for s in range(0, t, WINDOW_BLOCK)
+        ]
+        audio_exp = net.smooth(torch.cat(raw)) if raw else torch.zeros(0, net.cfg.audio_exp_dim)
+    expr = style.person_map.apply(audio_exp.numpy())
     voice = voice_activity(audio, sample_rate, fps, len(expr))[:, None]
     return (style.rest_expression + voice * (expr - style.rest_expression)).astype(np.float32)

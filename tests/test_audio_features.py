@@ -196,6 +196,15 @@ def test_windows_edge_padding_and_num_frames():
     np.testing.assert_array_equal(w[6, :, 0], [9, 9, 9, 9])  # 0.24 s is after the last frame (0.18 s)
 
 
+def test_windows_from_a_first_frame_are_a_slice_of_all_windows():
+    f = AudioFeatures(np.random.default_rng(0).random((120, 3), dtype=np.float32), 50.0, "phonemes", 2.4)
+    whole = frame_windows(f, 30.0)
+    np.testing.assert_array_equal(frame_windows(f, 30.0, num_frames=50, first=20), whole[20:50])
+    assert frame_windows(f, 30.0, first=len(whole)).shape == (0, 16, 3)
+    with pytest.raises(NvpError, match="first frame"):
+        frame_windows(f, 30.0, first=len(whole) + 1)
+
+
 def test_num_video_frames():
     assert num_video_frames(20.0, 25.0) == 500
     assert num_video_frames(2.0, 30000 / 1001) == 60  # 59.94 -> 60

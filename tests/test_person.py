@@ -63,6 +63,26 @@ def test_predict_expressions_has_one_row_per_video_frame(fps):
     assert predict_expressions(audio, 44100, fps, _style(), net, num_frames=10).shape == (10, K)
 
 
+def test_predict_expressions_in_blocks_equals_one_pass(monkeypatch):
+    """Windows are made block by block (bounded memory); the result must equal the whole-file path."""
+    from nvp import person
+    from nvp.audio_features import extract_features, frame_windows, speaker_normalized, voice_activity
+    from nvp.train_audio2exp import audio_expressions
+
+    torch.manual_seed(0)
+    net = Audio2ExpressionNet(Audio2ExpConfig(feature_dim=80)).eval()
+    rng = np.random.default_rng(2)
+    audio = (0.2 * rng.standard_normal(16000 * 3)).astype(np.float32)
+    style = _style()
+    monkeypatch.setattr(person, "WINDOW_BLOCK", 7)  # 75 frames: 11 blocks, the last one partial
+    blocked = predict_expressions(audio, 16000, 25.0, style, net)
+    windows = frame_windows(speaker_normalized(extract_features(audio, 16000, kind="mel")), 25.0)
+    expr = style.person_map.apply(audio_expressions(net, windows))
+    voice = voice_activity(audio, 16000, 25.0, len(expr))[:, None]
+    whole = style.rest_expression + voice * (expr - style.rest_expression)
+    np.testing.assert_allclose(blocked, whole, atol=1e-5)
+
+
 def test_silence_gives_the_rest_expression_and_speech_does_not():
     net = Audio2ExpressionNet(Audio2ExpConfig(feature_dim=80)).eval()
     style = _style()
