@@ -95,11 +95,23 @@ def region_weight(region: torch.Tensor, grow: float = 0.03) -> torch.Tensor:
     return box_blur(dilate(region, 2 * r), r)
 
 
-def paste(frame: torch.Tensor, crop: torch.Tensor, box: np.ndarray, weight: torch.Tensor) -> torch.Tensor:
+def paste(
+    frame: torch.Tensor,
+    crop: torch.Tensor,
+    box: np.ndarray,
+    weight: torch.Tensor,
+    detail: tuple[torch.Tensor, torch.Tensor] | None = None,
+) -> torch.Tensor:
     """Blend ``crop`` ``(C, S, S)`` back into ``frame`` ``(C, H, W)`` (both float) at ``box``.
 
     Only the frame pixels under the box are resampled (from the crop, bilinear) and blended with
     ``weight`` ``(1, 1, S, S)``; returns a new frame.
+
+    ``detail = (original, keep)``: ``original`` ``(C, S, S)`` is the crop that was cut from ``frame``
+    and ``keep`` ``(1, 1, S, S)`` is 1 where the footage may show through (outside the replaced region).
+    There the frame's own fine detail, which the crop lost by being resampled to ``S × S``, is added back
+    (the frame minus its crop-resolution copy), so the footage around a rendered face stays as sharp as
+    it was; where the crop equals ``original`` the frame comes back unchanged.
     """
     _, h, w = frame.shape
     s = crop.shape[-1]
@@ -113,8 +125,17 @@ def paste(frame: torch.Tensor, crop: torch.Tensor, box: np.ndarray, weight: torc
     xs = ((torch.arange(x0, x1, dtype=torch.float32) + 0.5 - cx) / side) * 2
     ys = ((torch.arange(y0, y1, dtype=torch.float32) + 0.5 - cy) / side) * 2
     grid = torch.stack(torch.meshgrid(xs, ys, indexing="xy"), -1)[None].to(crop.device)
-    both = torch.cat([crop[None].float(), weight.expand(1, 1, s, s)], 1)
-    sampled = F.grid_sample(both, grid, mode="bilinear", padding_mode="zeros", align_corners=False)[0]
-    rgb, a = sampled[:-1], sampled[-1:]
-    out[:, y0:y1, x0:x1] = a * rgb + (1 - a) * frame[:, y0:y1, x0:x1]
+    maps = [crop[None].float(), weight.expand(1, 1, s, s)]
+    if detail is not None:
+        maps += [detail[0][None].float(), detail[1].expand(1, 1, s, s)]
+    stacked = torch.cat(maps, 1)
+    sampled = F.grid_sample(stacked, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
+    c = crop.shape[0]
+    rgb, a = sampled[0, :c], sampled[0, c : c + 1]
+    under = frame[:, y0:y1, x0:x1]
+    blended = a * rgb + (1 - a) * under
+    if detail is not None:
+        low, keep = sampled[0, c + 1 : 2 * c + 1], sampled[0, 2 * c + 1 :]
+        blended = blended + a * keep * (under - low)
+    out[:, y0:y1, x0:x1] = blended
     return out

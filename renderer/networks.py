@@ -105,13 +105,24 @@ class NeuralRenderer(nn.Module):
     ``background`` ``(B, 3, H, W)`` (the frame with the face region blanked) and ``region`` ``(B, 1, H, W)``
     (that blanked region). Returns the interior render and the final image, both ``(B, 3, H, W)`` in
     [0, 1].
+
+    ``region_input``: the compositing network is also given ``region``, so it can tell blanked pixels
+    from dark footage (a black suit) and knows where to paint when the region is wider than the mesh (a
+    dub covers the footage's own chin as well). Renderers of format 4 and older were trained without it.
     """
 
-    def __init__(self, unet: UNetConfig, texture_channels: int = 16, texture_size: int = 256) -> None:
+    def __init__(
+        self,
+        unet: UNetConfig,
+        texture_channels: int = 16,
+        texture_size: int = 256,
+        region_input: bool = True,
+    ) -> None:
         super().__init__()
+        self.region_input = region_input
         self.texture = NeuralTexture(texture_channels, texture_size)
         self.interior = UNet(texture_channels + 2, 3, unet)
-        self.composite = UNet(6 + 1, 4, unet)
+        self.composite = UNet(7 + int(region_input), 4, unet)
         with torch.no_grad():  # start by passing the background through (opacity ~0.02); learn where to paint
             self.composite.out.bias[3] = -4.0
 
@@ -125,7 +136,8 @@ class NeuralRenderer(nn.Module):
     ) -> tuple[torch.Tensor, torch.Tensor]:
         feats = self.texture(uv, mask)
         interior = self.interior(torch.cat([feats, mask, mouth], 1)) * mask
-        out = self.composite(torch.cat([interior, background, mask], 1))
+        extra = [region] if self.region_input else []
+        out = self.composite(torch.cat([interior, background, mask, *extra], 1))
         # the second network paints the seam: the ring between the mesh and the untouched footage, as RGB
         # plus an opacity, so pixels it leaves alone keep the footage exactly (no blur, no drift). Well
         # inside the mesh the interior render is kept as is: a second pass through a small U-Net only

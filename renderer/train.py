@@ -23,8 +23,9 @@ from renderer.networks import NeuralRenderer, UNetConfig, count_parameters
 
 log = logging.getLogger(__name__)
 FORMAT = "nvp.renderer"
-FORMAT_VERSION = 4  # 2: the interior render is kept inside the mesh; 3: opaque inside the region;
-# 4: the preset records its region_grow (version 3 files were all trained with 0.06 and still load)
+FORMAT_VERSION = 5  # 2: the interior render is kept inside the mesh; 3: opaque inside the region;
+# 4: the preset records its region_grow (version 3 files were all trained with 0.06 and still load);
+# 5: the compositing network is given the blanked region (versions 3 and 4 load without it)
 
 
 @dataclass(frozen=True)
@@ -38,11 +39,18 @@ class TrainConfig:
     budget_s: float | None = None
     """Stop (and save) after this many seconds of training, whatever ``steps`` says."""
     lr: float = 1e-3
-    """Adam learning rate (networks and texture)."""
+    """Adam learning rate (networks and texture) at the start."""
+    lr_final: float = 0.05
+    """Learning rate at the end of training, as a fraction of ``lr``: the rate follows a half cosine from
+    ``lr`` down to ``lr · lr_final`` over the run (its steps or its time budget, whichever ends first)."""
     ssim_weight: float = 0.5
     """Weight of the 1 - SSIM term."""
     interior_weight: float = 1.0
     """Weight of the masked L1 term on the interior render."""
+    region_mix: float = 0.5
+    """Fraction of training crops whose blanked region is widened to the union with another training
+    frame's region, as when a dub's new geometry covers less than the footage's own face: the
+    compositing network then learns to paint the footage's neck and collar where a chin was blanked."""
     vgg_weights: str | None = None
     """Optional VGG-16 weights file (torchvision layout) for a perceptual term; never downloaded."""
     vgg_weight: float = 0.1
@@ -70,9 +78,31 @@ def renderer_loss(
     return loss + cfg.ssim_weight * 2 * ssim_loss(final, target, window_size=7)
 
 
-def make_renderer(preset: Preset) -> NeuralRenderer:
+def learning_rate(cfg: TrainConfig, progress: float) -> float:
+    """Cosine-decayed learning rate at ``progress`` (0 = start, 1 = end of training)."""
+    p = min(max(progress, 0.0), 1.0)
+    return float(cfg.lr * (cfg.lr_final + (1 - cfg.lr_final) * 0.5 * (1 + np.cos(np.pi * p))))
+
+
+def mix_regions(
+    region: torch.Tensor, cache: FrameCache, rng: np.random.Generator, fraction: float
+) -> torch.Tensor:
+    """``region`` ``(B, 1, S, S)`` with a random ``fraction`` of its crops widened to the union with the
+    region of a random other frame of ``cache``."""
+    pick = np.flatnonzero(rng.random(region.shape[0]) < fraction)
+    if len(pick) == 0:
+        return region
+    other = torch.from_numpy(cache.region[rng.integers(0, len(cache.frames), len(pick))])
+    region = region.clone()
+    region[pick, 0] = torch.maximum(region[pick, 0], other.to(region))
+    return region
+
+
+def make_renderer(preset: Preset, region_input: bool = True) -> NeuralRenderer:
     return NeuralRenderer(
-        UNetConfig(base=preset.base, dilated=preset.dilated), texture_size=preset.texture_size
+        UNetConfig(base=preset.base, dilated=preset.dilated),
+        texture_size=preset.texture_size,
+        region_input=region_input,
     )
 
 
@@ -93,13 +123,13 @@ def load_renderer(out_dir: Path, device: str = "cpu") -> tuple[NeuralRenderer, P
     js = Path(out_dir) / "renderer.json"
     try:
         m = json.loads(js.read_text())
-        if m.get("format") != FORMAT or m.get("version") not in (3, FORMAT_VERSION):
+        if m.get("format") != FORMAT or m.get("version") not in (3, 4, FORMAT_VERSION):
             raise FormatError(
                 f"{js}: expected {FORMAT} version {FORMAT_VERSION}, "
                 f"found {m.get('format')} {m.get('version')}"
             )
         preset = Preset(**{"region_grow": 0.06, **m["preset"]})
-        net = make_renderer(preset)
+        net = make_renderer(preset, region_input=m["version"] >= 5)
         with np.load(js.parent / "renderer.npz") as z:
             net.load_state_dict({k: torch.from_numpy(z[k]) for k in z.files})
     except (OSError, ValueError, KeyError, RuntimeError) as e:
@@ -139,9 +169,15 @@ def train_renderer(
     step, elapsed, log_rows = 0, 0.0, []
     ckpt = out_dir / "checkpoint.pt"
     if ckpt.exists():
-        state = torch.load(ckpt, weights_only=True, map_location=device)
-        net.load_state_dict(state["net"])
-        opt.load_state_dict(state["opt"])
+        try:
+            state = torch.load(ckpt, weights_only=True, map_location=device)
+            net.load_state_dict(state["net"])
+            opt.load_state_dict(state["opt"])
+        except (RuntimeError, KeyError, ValueError) as e:
+            raise FormatError(
+                f"{ckpt} was written by another nvp version or preset and cannot be resumed; "
+                "delete it to train from scratch"
+            ) from e
         step, elapsed, log_rows = int(state["step"]), float(state["elapsed"]), json.loads(state["log"])
         log.info("resuming renderer training at step %d", step)
 
@@ -170,9 +206,14 @@ def train_renderer(
     t_last = time.perf_counter()
     while step < steps and (cfg.budget_s is None or elapsed < cfg.budget_s):
         net.train()
-        idx = np.random.default_rng([cfg.seed, step]).integers(0, n, preset.batch)
+        progress = step / steps if cfg.budget_s is None else max(step / steps, elapsed / cfg.budget_s)
+        for group in opt.param_groups:
+            group["lr"] = learning_rate(cfg, progress)
+        rng = np.random.default_rng([cfg.seed, step])
+        idx = rng.integers(0, n, preset.batch)
         target, geo = cache.batch(idx, device)
-        interior, final = net(geo.uv, geo.mask, geo.mouth, blank_face(target, geo.region), geo.region)
+        region = mix_regions(geo.region, cache, rng, cfg.region_mix)
+        interior, final = net(geo.uv, geo.mask, geo.mouth, blank_face(target, region), region)
         loss = renderer_loss(interior, final, target, geo.mask, cfg)
         if perceptual is not None:
             loss = loss + cfg.vgg_weight * perceptual(final, target)

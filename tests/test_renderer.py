@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 import torch
@@ -57,6 +60,26 @@ def test_cut_and_paste_round_trip():
     other = paste(frame, torch.zeros_like(crop), box, feather(64))
     assert other[:, 60, 70].abs().max() < 1e-3  # centre replaced
     torch.testing.assert_close(other[:, :20], frame[:, :20])  # outside the box untouched
+
+
+def test_paste_keeps_the_footage_detail_outside_the_replaced_region():
+    torch.manual_seed(0)
+    frame = torch.rand(3, 200, 200) * 255  # fine detail that a 48 px crop of a 160 px box cannot hold
+    box = np.array([100.0, 100.0, 160.0])
+    low = cut(frame[None], torch.from_numpy(box[None]).float(), 48)[0]
+    weight = torch.ones(1, 1, 48, 48)
+    region = torch.zeros(1, 1, 48, 48)
+    region[..., 16:32, 16:32] = 1
+    rendered = low.clone()
+    rendered[:, 16:32, 16:32] = 128.0
+    plain = paste(frame, rendered, box, weight)
+    out = paste(frame, rendered, box, weight, detail=(low, 1 - region))
+    outside = (slice(None), slice(25, 60), slice(25, 175))
+    inside = (slice(None), slice(95, 105), slice(95, 105))
+    err = (plain[outside] - frame[outside]).abs().mean()
+    assert err > 20  # the crop-resolution copy lost the detail ...
+    torch.testing.assert_close(out[outside], frame[outside], atol=1e-3, rtol=0)  # ... which comes back
+    torch.testing.assert_close(out[inside], torch.full_like(out[inside], 128.0))  # nothing leaks inside
 
 
 def test_crop_camera_maps_points_into_the_crop():
@@ -139,11 +162,11 @@ def test_training_resumes_exactly_and_renders(footage, face_model, tmp_path):
     cache = build_cache(path, seq, face_model, TINY, np.arange(10), progress=False)
     assert cache.crops.shape == (10, 32, 32, 3) and cache.mask.mean() > 0.2
     assert cache.mouth.any() and (cache.region >= cache.mask).all()
-    cfg = TrainConfig(steps=4, checkpoint_every=2, preview_every=2)
+    # a constant learning rate, so that stopping after 2 of 4 steps is the same as being interrupted there
+    cfg = TrainConfig(steps=4, checkpoint_every=2, preview_every=2, lr_final=1.0)
     full = train_renderer(cache, cfg, tmp_path / "a", progress=False, preset=TINY)
-    train_renderer(
-        cache, TrainConfig(steps=2, checkpoint_every=2), tmp_path / "b", progress=False, preset=TINY
-    )
+    part = replace(cfg, steps=2)
+    train_renderer(cache, part, tmp_path / "b", progress=False, preset=TINY)
     resumed = train_renderer(cache, cfg, tmp_path / "b", progress=False, preset=TINY)
     assert full["steps"] == resumed["steps"] == 4
     a, _, _ = load_renderer(tmp_path / "a")
@@ -151,6 +174,10 @@ def test_training_resumes_exactly_and_renders(footage, face_model, tmp_path):
     for (k, va), vb in zip(a.state_dict().items(), b.state_dict().values(), strict=True):
         torch.testing.assert_close(va, vb, msg=k)
     assert m["preset"]["name"] == "tiny" and (tmp_path / "a" / "preview_000002.png").exists()
+    from nvp.errors import FormatError
+
+    with pytest.raises(FormatError, match="cannot be resumed"):  # a checkpoint of another network size
+        train_renderer(cache, cfg, tmp_path / "a", progress=False, preset=replace(TINY, base=8))
 
     from nvp.media import iter_frames
 
@@ -179,12 +206,46 @@ def test_renderer_files_keep_the_region_they_were_trained_with(tmp_path):
     from renderer.train import make_renderer, save_renderer
 
     save_renderer(make_renderer(TINY), tmp_path, TINY, {})
-    assert load_renderer(tmp_path)[1].region_grow == TINY.region_grow == 0.03
-    # version 3 files (before the preset recorded it) were trained with a 6 % region and still load
+    net, preset, _ = load_renderer(tmp_path)
+    assert preset.region_grow == TINY.region_grow == 0.015 and net.region_input
+    # version 3 and 4 files: no region input to the compositing network; version 3 files (before the
+    # preset recorded it) were trained with a 6 % region
+    save_renderer(make_renderer(TINY, region_input=False), tmp_path, TINY, {})
     m = json.loads((tmp_path / "renderer.json").read_text())
+    (tmp_path / "renderer.json").write_text(json.dumps({**m, "version": 4}))
+    net, preset, _ = load_renderer(tmp_path)
+    assert preset.region_grow == 0.015 and not net.region_input
     del m["preset"]["region_grow"]
     (tmp_path / "renderer.json").write_text(json.dumps({**m, "version": 3}))
     assert load_renderer(tmp_path)[1].region_grow == 0.06
+
+
+def test_learning_rate_falls_from_lr_to_its_final_fraction():
+    from renderer.train import learning_rate
+
+    cfg = TrainConfig(lr=1e-3, lr_final=0.05)
+    lrs = [learning_rate(cfg, p) for p in np.linspace(-0.5, 1.5, 41)]
+    assert lrs[0] == pytest.approx(1e-3) and lrs[10] == pytest.approx(1e-3)  # progress 0 (and before)
+    assert lrs[30] == pytest.approx(5e-5) and lrs[-1] == pytest.approx(5e-5)  # progress 1 (and after)
+    assert learning_rate(cfg, 0.5) == pytest.approx(0.5 * (1e-3 + 5e-5))
+    assert all(a >= b for a, b in zip(lrs[:-1], lrs[1:], strict=True)) and type(lrs[0]) is float
+
+
+def test_mix_regions_widens_a_fraction_of_the_crops_to_a_union():
+    from renderer.train import mix_regions
+
+    n, s = 6, 16
+    rows = np.zeros((n, s, s), bool)
+    for i in range(n):
+        rows[i, 4 : 8 + i, 4:12] = True  # the "chin" of frame i reaches row 7 + i
+    cache = SimpleNamespace(region=rows, frames=np.arange(n))
+    region = torch.from_numpy(rows[:1].repeat(8, 0))[:, None].float()
+    rng = np.random.default_rng(0)
+    assert torch.equal(mix_regions(region, cache, rng, 0.0), region)
+    mixed = mix_regions(region, cache, rng, 1.0)
+    assert (mixed >= region).all() and not torch.equal(mixed, region)
+    for m in mixed[:, 0].numpy().astype(bool):  # each crop is its own region ∪ one frame's region
+        assert any((m == (rows[0] | r)).all() for r in rows)
 
 
 def test_vgg_perceptual_term_from_a_user_weights_file(footage, face_model, tmp_path):
