@@ -75,9 +75,10 @@ class FrameRenderer:
             region.to(dev),
         )
         # only the lower face (where the geometry can differ from the footage) and its surroundings are
-        # pasted: eyes, brows and forehead keep the footage's own pixels at full resolution
+        # pasted: eyes, brows and forehead keep the footage's own pixels at full resolution; around the
+        # painted part the footage keeps its full-resolution detail too (the crop is softer), while inside
+        # it nothing of the footage's own mouth and chin shows through
         paint = face_region((lower > LOWER_FACE).float(), self.preset.region_grow) * region
-        # around the rendered region the footage keeps its own full-resolution detail (the crop is softer)
         weight = self.weight * region_weight(paint)
-        out = paste(img, final[0].cpu() * 255, box, weight, detail=(crop[0] * 255, 1 - region))
+        out = paste(img, final[0].cpu() * 255, box, weight, detail=(crop[0] * 255, 1 - paint))
         return out.clamp(0, 255).round().byte().permute(1, 2, 0).numpy()
