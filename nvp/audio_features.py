@@ -48,7 +48,7 @@ from __future__ import annotations
 import logging
 import math
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from fractions import Fraction
 from functools import lru_cache
@@ -482,7 +482,25 @@ def frame_windows(
     block: int = 2048,
     first: int = 0,
 ) -> np.ndarray:
-    """Per-video-frame windows of features, ``(T - first, window, D)`` float32.
+    """Per-video-frame windows of features, ``(T - first, window, D)`` float32 (see
+    :func:`iter_frame_windows`, which yields them ``block`` frames at a time)."""
+    blocks = list(iter_frame_windows(features, fps, num_frames, window, window_rate, block, first))
+    if not blocks:
+        return np.empty((0, window, features.dim), dtype=np.float32)
+    return blocks[0] if len(blocks) == 1 else np.concatenate(blocks)
+
+
+def iter_frame_windows(
+    features: AudioFeatures,
+    fps: float,
+    num_frames: int | None = None,
+    window: int = 16,
+    window_rate: float = DEFAULT_WINDOW_RATE,
+    block: int = 2048,
+    first: int = 0,
+) -> Iterator[np.ndarray]:
+    """Per-video-frame windows of features, ``(≤ block, window, D)`` float32 arrays for frames ``first,
+    first + 1, … T - 1`` in order, so the windows of a long file need not all be in memory at once.
 
     Video frame ``i`` is at time ``t_i = i / fps`` seconds. Its window holds the features at times
     ``t_i + (k - window // 2) / window_rate`` for ``k = 0 .. window - 1``, so position ``window // 2`` is
@@ -501,11 +519,11 @@ def frame_windows(
         num_frames: T; default :func:`num_video_frames` of the audio duration, ``ceil(duration * fps)``.
         window: samples per window (W).
         window_rate: samples per second inside a window.
-        block: video frames processed at a time (bounds temporary memory to a few times the output block).
+        block: video frames per yielded array (bounds temporary memory to a few times a block).
         first: the first video frame to make a window for (windows of a long file can be made in blocks).
 
-    Returns:
-        ``(T - first, W, D)`` float32 windows of frames ``first .. T - 1``.
+    Yields:
+        ``(B, W, D)`` float32 windows of consecutive frames, ``first .. T - 1`` in all.
     """
     if not (math.isfinite(fps) and fps > 0):
         raise NvpError(f"expected a positive video frame rate, found {fps!r}")
@@ -527,7 +545,6 @@ def frame_windows(
         src = _tent_smooth(src, factor)
     n = features.num_frames
     offsets = (np.arange(window, dtype=np.float64) - window // 2) / window_rate
-    out = np.empty((t_count - first, window, features.dim), dtype=np.float32)
     for b0 in range(first, t_count, block):
         b1 = min(t_count, b0 + block)
         times = np.arange(b0, b1, dtype=np.float64) / fps
@@ -538,8 +555,7 @@ def frame_windows(
         i0 = np.floor(pos).astype(np.int64)
         i1 = np.minimum(i0 + 1, n - 1)
         w = (pos - i0).astype(np.float32)[..., None]
-        out[b0 - first : b1 - first] = src[i0] * (1.0 - w) + src[i1] * w
-    return out
+        yield (src[i0] * (1.0 - w) + src[i1] * w).astype(np.float32, copy=False)
 
 
 # ---------------------------------------------------------------------------------------------- speech

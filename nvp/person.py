@@ -132,23 +132,14 @@ def predict_expressions(
     """
     import torch
 
-    from nvp.audio_features import (
-        extract_features,
-        frame_windows,
-        num_video_frames,
-        speaker_normalized,
-        voice_activity,
-    )
+    from nvp.audio_features import extract_features, iter_frame_windows, speaker_normalized, voice_activity
 
     feats = speaker_normalized(extract_features(audio, sample_rate, kind=style.feature_kind))
-    t = num_video_frames(feats.duration_s, fps) if num_frames is None else int(num_frames)
     # windows are made block by block: all of them at once would be (T, 16, 191) float32, 37 MB a minute
     net.eval()
     with torch.no_grad():
-        raw = [
-            net.per_frame(torch.from_numpy(frame_windows(feats, fps, min(t, s + WINDOW_BLOCK), first=s)))
-            for s in range(0, t, WINDOW_BLOCK)
-        ]
+        blocks = iter_frame_windows(feats, fps, num_frames, block=WINDOW_BLOCK)
+        raw = [net.per_frame(torch.from_numpy(w)) for w in blocks]
         audio_exp = net.smooth(torch.cat(raw)) if raw else torch.zeros(0, net.cfg.audio_exp_dim)
     expr = style.person_map.apply(audio_exp.numpy())
     voice = voice_activity(audio, sample_rate, fps, len(expr))[:, None]
