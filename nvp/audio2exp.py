@@ -18,11 +18,18 @@ temporal term on forward, backward and central differences (λ = 20).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
 from torch import nn
+
+from nvp.artifact import load_artifact, save_artifact
+from nvp.errors import FormatError
+
+FORMAT_VERSION = 1
+ASSETS = Path(__file__).parent / "assets"
 
 
 @dataclass(frozen=True)
@@ -202,3 +209,38 @@ def solve_person_map(audio_exp: np.ndarray, expression: np.ndarray, ridge: float
     ac, dc = a - am, d - dm
     m = np.linalg.solve(ac.T @ ac + ridge * np.eye(a.shape[1]), ac.T @ dc).T
     return PersonMap(matrix=m.astype(np.float32), bias=(dm - m @ am).astype(np.float32))
+
+
+def audio_expressions(net: Audio2ExpressionNet, windows: np.ndarray, use_filter: bool = True) -> np.ndarray:
+    """Generic-net outputs ``(T, A)`` for feature windows ``(T, W, D)`` (inference, no gradients)."""
+    net.eval()
+    with torch.no_grad():
+        return net.sequence(torch.from_numpy(windows), use_filter=use_filter).numpy()
+
+
+def save_net(net: Audio2ExpressionNet, out: Path, manifest: dict) -> Path:
+    """Write ``<out>.npz`` (weights) and ``<out>.json`` (format, config, ``manifest``: provenance)."""
+    arrays = {k: v.detach().cpu().numpy() for k, v in net.state_dict().items()}
+    return save_artifact(Path(out), "audio2exp", FORMAT_VERSION, arrays, {"net": asdict(net.cfg), **manifest})
+
+
+def load_net(path: Path) -> tuple[Audio2ExpressionNet, dict]:
+    """A saved network (from its ``.json`` manifest or ``.npz``) in eval mode, and its manifest, whose
+    ``sha256`` (of the weights file) identifies the network for the person maps made with it."""
+    art = load_artifact(path, "audio2exp", FORMAT_VERSION)
+    cfg = dict(art.manifest["net"])
+    cfg["conv_channels"] = tuple(cfg["conv_channels"])
+    net = Audio2ExpressionNet(Audio2ExpConfig(**cfg))
+    try:
+        net.load_state_dict({k: torch.from_numpy(v) for k, v in art.arrays.items()})
+    except RuntimeError as e:
+        raise FormatError(f"cannot load Audio2Expression weights {art.path}: {e}") from e
+    return net.eval(), art.manifest
+
+
+def default_audio2exp(kind: str = "phonemes") -> tuple[Audio2ExpressionNet, dict]:
+    """The generic network that ships with nvp for a feature kind, and its manifest."""
+    path = ASSETS / f"audio2exp_{kind}.json"
+    if not path.exists():
+        raise FormatError(f"no shipped Audio2ExpressionNet for features '{kind}' ({path} missing)")
+    return load_net(path)

@@ -48,7 +48,7 @@ from __future__ import annotations
 import logging
 import math
 import os
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass
 from fractions import Fraction
 from functools import lru_cache
@@ -60,26 +60,6 @@ import numpy as np
 from nvp.errors import NvpError
 
 logger = logging.getLogger(__name__)
-
-__all__ = [
-    "DEFAULT_WINDOW_RATE",
-    "FEATURE_KINDS",
-    "MEL_BANDS",
-    "MEL_RATE",
-    "PHONEME_DIM",
-    "PHONEME_RATE",
-    "SAMPLE_RATE",
-    "SPEECH_THRESHOLD_DB",
-    "AudioFeatures",
-    "extract_features",
-    "features_from_file",
-    "frame_windows",
-    "mel_filterbank",
-    "num_video_frames",
-    "phoneme_labels",
-    "rms_envelope_db",
-    "speech_activity",
-]
 
 SAMPLE_RATE = 16000
 """Sample rate in Hz at which all features are computed."""
@@ -117,17 +97,6 @@ MEL_POWER_FLOOR = 1e-10
 """Power floor before the log: silence gives ``log(1e-10) = -23.03`` in every band."""
 MEL_CHUNK_S = 30.0
 """Default chunk length in seconds for mel extraction (the result does not depend on it)."""
-
-# ------------------------------------------------------------------------------------ windows, speech
-DEFAULT_WINDOW_RATE = 50.0
-"""Default spacing of the samples inside a per-frame window, in samples per second: 16 samples at 50 Hz
-span 320 ms (as with the DeepSpeech features of Neural Voice Puppetry) whatever the feature rate."""
-SPEECH_THRESHOLD_DB = -45.0
-"""RMS level in dBFS above which a 20 ms block counts as active. On the real speech clips in
-``../shared/data/audio`` the 90th-percentile block level is between -35 and -7 dBFS and pauses sit between
--120 and -45 dBFS (a few noisy recordings have a floor near -30 dBFS, which is still 'active')."""
-SPEECH_MIN_ACTIVE_S = 0.2
-"""Total active duration in seconds needed for :func:`speech_activity` to report speech."""
 
 
 @dataclass(frozen=True)
@@ -181,7 +150,7 @@ class AudioFeatures:
 # ------------------------------------------------------------------------------------------- helpers
 
 
-def _prepare_audio(audio: np.ndarray, sample_rate: int) -> np.ndarray:
+def prepare_audio(audio: np.ndarray, sample_rate: int) -> np.ndarray:
     """Mono float32 audio at 16 kHz, non-finite samples set to 0 and clipped to [-1, 1]."""
     arr = np.asarray(audio)
     if arr.ndim != 1:
@@ -205,15 +174,6 @@ def _prepare_audio(audio: np.ndarray, sample_rate: int) -> np.ndarray:
         arr = resample_poly(arr, ratio.numerator, ratio.denominator).astype(np.float32)
         arr = np.clip(arr, -1.0, 1.0)  # the anti-aliasing filter can overshoot
     return np.ascontiguousarray(arr, dtype=np.float32)
-
-
-def num_video_frames(duration_s: float, fps: float) -> int:
-    """Number of video frames at ``fps`` needed to cover ``duration_s`` seconds: ``ceil(duration * fps)``.
-
-    A product within 1e-6 of an integer counts as that integer (20 s at 25 fps is 500 frames, not 501).
-    """
-    x = duration_s * fps
-    return max(0, int(math.ceil(x - 1e-6)))
 
 
 # ------------------------------------------------------------------------------------------------ mel
@@ -411,7 +371,7 @@ def extract_features(
         raise NvpError(f"feature kind must be one of {FEATURE_KINDS}, found {kind!r}")
     if chunk_s is not None and not (math.isfinite(chunk_s) and chunk_s > 0):
         raise NvpError(f"expected a positive chunk length in seconds, found {chunk_s!r}")
-    wav = _prepare_audio(audio, sample_rate)
+    wav = prepare_audio(audio, sample_rate)
     duration = len(wav) / SAMPLE_RATE
     if kind == "mel":
         values = _extract_mel(wav, MEL_CHUNK_S if chunk_s is None else chunk_s)
@@ -456,199 +416,3 @@ def features_from_file(path: str | os.PathLike[str], kind: str = "phonemes", **k
 
     audio = read_audio(Path(path), sample_rate=SAMPLE_RATE)
     return extract_features(audio, SAMPLE_RATE, kind=kind, **kwargs)
-
-
-def _tent_smooth(values: np.ndarray, factor: float) -> np.ndarray:
-    """Low-pass ``(N, D)`` along N with a triangular kernel of half-width ``factor`` frames (normalised).
-
-    This is the anti-aliasing filter for reading features of rate ``r`` at spacing ``factor / r``: for
-    ``factor == 2`` the kernel is ``[1/4, 1/2, 1/4]``. Edges are extended with the edge values.
-    """
-    from scipy.ndimage import convolve1d
-
-    half = int(math.ceil(factor)) - 1
-    j = np.arange(-half, half + 1, dtype=np.float64)
-    kernel = np.maximum(0.0, 1.0 - np.abs(j) / factor)
-    kernel /= kernel.sum()
-    return convolve1d(values, kernel.astype(np.float32), axis=0, mode="nearest")
-
-
-def frame_windows(
-    features: AudioFeatures,
-    fps: float,
-    num_frames: int | None = None,
-    window: int = 16,
-    window_rate: float = DEFAULT_WINDOW_RATE,
-    block: int = 2048,
-    first: int = 0,
-) -> np.ndarray:
-    """Per-video-frame windows of features, ``(T - first, window, D)`` float32 (see
-    :func:`iter_frame_windows`, which yields them ``block`` frames at a time)."""
-    blocks = list(iter_frame_windows(features, fps, num_frames, window, window_rate, block, first))
-    if not blocks:
-        return np.empty((0, window, features.dim), dtype=np.float32)
-    return blocks[0] if len(blocks) == 1 else np.concatenate(blocks)
-
-
-def iter_frame_windows(
-    features: AudioFeatures,
-    fps: float,
-    num_frames: int | None = None,
-    window: int = 16,
-    window_rate: float = DEFAULT_WINDOW_RATE,
-    block: int = 2048,
-    first: int = 0,
-) -> Iterator[np.ndarray]:
-    """Per-video-frame windows of features, ``(≤ block, window, D)`` float32 arrays for frames ``first,
-    first + 1, … T - 1`` in order, so the windows of a long file need not all be in memory at once.
-
-    Video frame ``i`` is at time ``t_i = i / fps`` seconds. Its window holds the features at times
-    ``t_i + (k - window // 2) / window_rate`` for ``k = 0 .. window - 1``, so position ``window // 2`` is
-    ``t_i`` itself and the window spans ``window / window_rate`` seconds (320 ms for 16 at 50 Hz).
-    Feature values at a time ``t`` are read from the feature time line (frame ``n`` at ``n / rate``) by
-    linear interpolation between the two nearest frames, and times before the first or after the last
-    frame take the edge frame's value (edge padding). When ``window_rate`` is below the feature rate
-    (e.g. 100 Hz mel read at 50 Hz) the features are first smoothed with a triangular kernel of half-width
-    ``rate / window_rate`` frames so that the coarser sampling does not alias (for mel at 100 Hz and the
-    default 50 Hz: weights 1/4, 1/2, 1/4). At 25 fps and 50 Hz phoneme features every window sample falls
-    exactly on a feature frame (no interpolation); at 29.97 or 30 fps samples in between are blended.
-
-    Args:
-        features: the audio features (any kind and rate).
-        fps: video frame rate in frames per second, e.g. 25, 30 or 29.97 (30000/1001).
-        num_frames: T; default :func:`num_video_frames` of the audio duration, ``ceil(duration * fps)``.
-        window: samples per window (W).
-        window_rate: samples per second inside a window.
-        block: video frames per yielded array (bounds temporary memory to a few times a block).
-        first: the first video frame to make a window for (windows of a long file can be made in blocks).
-
-    Yields:
-        ``(B, W, D)`` float32 windows of consecutive frames, ``first .. T - 1`` in all.
-    """
-    if not (math.isfinite(fps) and fps > 0):
-        raise NvpError(f"expected a positive video frame rate, found {fps!r}")
-    if not (math.isfinite(window_rate) and window_rate > 0):
-        raise NvpError(f"expected a positive window sample rate in Hz, found {window_rate!r}")
-    if window < 1:
-        raise NvpError(f"expected a window of at least 1 feature frame, found {window}")
-    if features.num_frames == 0:
-        raise NvpError("expected at least one feature frame, found none")
-    t_count = num_video_frames(features.duration_s, fps) if num_frames is None else int(num_frames)
-    if t_count < 0:
-        raise NvpError(f"expected a non-negative number of video frames, found {num_frames}")
-    if not 0 <= first <= t_count:
-        raise NvpError(f"expected a first frame between 0 and {t_count}, found {first}")
-
-    src = features.values
-    factor = features.rate / window_rate
-    if factor > 1.0 + 1e-9:
-        src = _tent_smooth(src, factor)
-    n = features.num_frames
-    offsets = (np.arange(window, dtype=np.float64) - window // 2) / window_rate
-    for b0 in range(first, t_count, block):
-        b1 = min(t_count, b0 + block)
-        times = np.arange(b0, b1, dtype=np.float64) / fps
-        pos = (times[:, None] + offsets[None, :]) * features.rate
-        near = np.round(pos)
-        pos = np.where(np.abs(pos - near) < 1e-6, near, pos)  # exact grid hits stay exact
-        pos = np.clip(pos, 0.0, n - 1)
-        i0 = np.floor(pos).astype(np.int64)
-        i1 = np.minimum(i0 + 1, n - 1)
-        w = (pos - i0).astype(np.float32)[..., None]
-        yield (src[i0] * (1.0 - w) + src[i1] * w).astype(np.float32, copy=False)
-
-
-# ---------------------------------------------------------------------------------------------- speech
-
-
-def rms_envelope_db(audio: np.ndarray, sample_rate: int, block_s: float = 0.02) -> np.ndarray:
-    """``(S // B,)`` float32 RMS level in dBFS of consecutive non-overlapping blocks of ``block_s`` seconds.
-
-    ``B = round(block_s * sample_rate)`` samples; each block's mean is removed first (DC offset), its
-    level is ``10 log10(mean(x^2))`` with 0 dBFS = RMS 1.0 (a full-scale sine is -3 dBFS), floored at
-    -120 dBFS. Audio is clipped to [-1, 1] and NaN set to 0 first; a trailing partial block is dropped
-    (for audio shorter than one block, the whole audio is one block).
-    """
-    arr = np.asarray(audio)
-    if arr.ndim != 1 or arr.size == 0:
-        raise NvpError(f"expected non-empty mono audio of shape (S,), found shape {arr.shape}")
-    b = max(1, int(round(block_s * sample_rate)))
-    nblocks = max(1, len(arr) // b)
-    out = np.empty(nblocks, dtype=np.float32)
-    step = max(1, (1 << 20) // b)  # ~1M samples at a time
-    for k0 in range(0, nblocks, step):
-        k1 = min(nblocks, k0 + step)
-        x = arr[k0 * b : k1 * b] if len(arr) >= b else arr
-        x = np.clip(np.nan_to_num(x.astype(np.float64), nan=0.0), -1.0, 1.0).reshape(k1 - k0, -1)
-        out[k0:k1] = 10.0 * np.log10(np.maximum(x.var(axis=1), 1e-12))
-    return out
-
-
-def speech_activity(
-    audio: np.ndarray,
-    sample_rate: int,
-    threshold_db: float = SPEECH_THRESHOLD_DB,
-    min_active_s: float = SPEECH_MIN_ACTIVE_S,
-) -> bool:
-    """Whether audio contains speech-like energy: at least ``min_active_s`` seconds of 20 ms blocks whose
-    RMS level (:func:`rms_envelope_db`) exceeds ``threshold_db`` dBFS (default -45).
-
-    This is an energy test, not a voice detector: silence, digital zeros, dither and quiet room tone
-    give False; speech, but also music or loud noise, give True.
-    """
-    block_s = 0.02
-    env = rms_envelope_db(audio, sample_rate, block_s)
-    needed = max(1, int(math.ceil(min_active_s / block_s - 1e-9)))
-    active = int(np.count_nonzero(env > threshold_db))
-    if len(env) < needed:  # shorter than min_active_s: all of it must be active
-        return active == len(env)
-    return active >= needed
-
-
-VOICE_THRESHOLD_DB = -50.0
-"""Absolute RMS level in dBFS below which a video frame is never voiced (:func:`voice_activity`)."""
-VOICE_RAMP_DB = 6.0
-"""Half-width in dB of the soft ramp of :func:`voice_activity` around its threshold."""
-VOICE_RELATIVE_DB = 45.0
-"""A frame counts as voiced only within this many dB of the file's loud end (95th percentile), so a
-recording with a high noise floor still has pauses."""
-VOICE_HOLD_S = 0.2
-"""Voice activity is held this long before and after every voiced frame: lips move before the sound
-starts and close after it ends, and pauses shorter than about twice this (breaths between phrases, when
-speakers often keep the mouth open) are left to the network. A compromise measured with
-``scripts/eval_audio2exp.py``: on held-out real videos, holds of 0.12 / 0.2 / 0.3 s lowered the correlation
-of predicted and tracked mouth opening by 0.18 / 0.05 / 0.01 (real speakers often keep the mouth open in
-short pauses); on 87 other voices they raised the correlation of mouth opening and loudness from 0.07
-(no gate) to 0.36 / 0.27 / 0.19."""
-
-
-def voice_activity(
-    audio: np.ndarray, sample_rate: int, fps: float, num_frames: int | None = None
-) -> np.ndarray:
-    """``(T,)`` float32 in [0, 1]: how much each video frame's audio is voice (1) or silence (0).
-
-    Per video frame (at ``i / fps`` s), the RMS level of the 40 ms around it (:func:`rms_envelope_db` on
-    20 ms blocks) is compared with ``max(VOICE_THRESHOLD_DB, p95 - VOICE_RELATIVE_DB)`` through a linear
-    ramp of +-:data:`VOICE_RAMP_DB`; then held (running maximum over +-:data:`VOICE_HOLD_S`) and
-    smoothed over 3 frames so that transitions take a few frames. ``T`` defaults to
-    :func:`num_video_frames` of the audio duration.
-    """
-    wav = _prepare_audio(audio, sample_rate)
-    t_count = num_video_frames(len(wav) / SAMPLE_RATE, fps) if num_frames is None else int(num_frames)
-    if t_count == 0:
-        return np.zeros(0, np.float32)
-    block_s = 0.02
-    env = rms_envelope_db(wav, SAMPLE_RATE, block_s)
-    centres = (np.arange(len(env)) + 0.5) * block_s
-    times = np.arange(t_count) / fps
-    # level of the ~40 ms around each frame: the louder of the two nearest blocks
-    idx = np.clip(np.searchsorted(centres, times), 0, len(env) - 1)
-    level = np.maximum(env[idx], env[np.maximum(idx - 1, 0)])
-    threshold = max(VOICE_THRESHOLD_DB, float(np.percentile(env, 95)) - VOICE_RELATIVE_DB)
-    act = np.clip((level - threshold) / (2 * VOICE_RAMP_DB) + 0.5, 0.0, 1.0)
-    hold = int(round(VOICE_HOLD_S * fps))
-    if hold:
-        padded = np.pad(act, hold, mode="edge")
-        act = np.lib.stride_tricks.sliding_window_view(padded, 2 * hold + 1).max(1)
-    act = np.convolve(np.pad(act, 1, mode="edge"), np.ones(3) / 3, mode="valid")
-    return act.astype(np.float32)

@@ -11,14 +11,13 @@ npz, build recipe and the data it saw). The default model ships in ``nvp/assets`
 
 from __future__ import annotations
 
-import hashlib
-import json
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
 
+from nvp.artifact import load_artifact, save_artifact
 from nvp.errors import FormatError
 
 FORMAT_VERSION = 1
@@ -145,39 +144,15 @@ class FaceModel:
         arrays.update({f"vregion_{k}": v.astype(bool) for k, v in self.vertex_regions.items()})
         arrays.update({f"tregion_{k}": v.astype(bool) for k, v in self.triangle_regions.items()})
         arrays.update({f"lmgroup_{k}": v.astype(np.int64) for k, v in self.landmark_groups.items()})
-        npz = stem.with_suffix(".npz")
-        np.savez_compressed(npz, **arrays)
-        manifest = {
-            "format": "nvp.face_model",
-            "version": FORMAT_VERSION,
-            "npz": npz.name,
-            "sha256": hashlib.sha256(npz.read_bytes()).hexdigest(),
-            "shapes": {k: list(v.shape) for k, v in arrays.items()},
-            "info": self.info,
-        }
-        js = stem.with_suffix(".json")
-        js.write_text(json.dumps(manifest, indent=2) + "\n")
-        return js
+        info = {k: v for k, v in self.info.items() if k != "sha256"}
+        fields = {"shapes": {k: list(v.shape) for k, v in arrays.items()}, "info": info}
+        return save_artifact(Path(stem), "face_model", FORMAT_VERSION, arrays, fields, compress=True)
 
     @classmethod
     def load(cls, path: Path) -> FaceModel:
         """Load from a ``.json`` manifest (or its ``.npz``); checks version and hash."""
-        js = Path(path).with_suffix(".json")
-        try:
-            manifest = json.loads(js.read_text())
-        except (OSError, ValueError) as e:
-            raise FormatError(f"cannot read face model manifest {js}: {e}") from e
-        if manifest.get("format") != "nvp.face_model" or manifest.get("version") != FORMAT_VERSION:
-            raise FormatError(
-                f"{js}: expected nvp.face_model version {FORMAT_VERSION}, "
-                f"found {manifest.get('format')} version {manifest.get('version')}"
-            )
-        npz = js.parent / manifest["npz"]
-        digest = hashlib.sha256(npz.read_bytes()).hexdigest() if npz.exists() else "missing"
-        if digest != manifest["sha256"]:
-            raise FormatError(f"{npz}: sha256 {digest} does not match manifest {manifest['sha256']}")
-        with np.load(npz) as z:
-            d = {k: z[k] for k in z.files}
+        art = load_artifact(path, "face_model", FORMAT_VERSION)
+        d, manifest = art.arrays, art.manifest
         return cls(
             template=d["template"],
             id_basis=d["id_basis"],

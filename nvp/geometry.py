@@ -6,8 +6,12 @@ row 0 at the top; a pinhole camera ``u = fx * X / Z + cx``, ``v = fy * Y / Z + c
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import torch
+
+if TYPE_CHECKING:
+    import torch
 
 
 def similarity_procrustes(
@@ -57,8 +61,23 @@ def project(points: torch.Tensor, focal: torch.Tensor, center: torch.Tensor) -> 
     return points[..., :2] / z * f + center
 
 
+def posed(vertices: np.ndarray, rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    """Camera-frame points ``(..., V, 3)`` of object-frame ``vertices`` ``(..., V, 3)`` under rotations
+    ``(..., 3, 3)`` and translations ``(..., 3)`` (``R X + t``; leading dimensions broadcast)."""
+    if rotation.ndim == 2:  # one pose: a single matrix product
+        return vertices @ rotation.T + translation
+    return np.einsum("...ij,...vj->...vi", rotation, vertices) + translation[..., None, :]
+
+
+def pinhole(points: np.ndarray, focal: float, center: np.ndarray) -> np.ndarray:
+    """Pixels ``(..., V, 2)`` of camera-frame ``points`` ``(..., V, 3)`` (numpy twin of :func:`project`)."""
+    return focal * points[..., :2] / np.maximum(points[..., 2:3], 1e-6) + center
+
+
 def skew(v: torch.Tensor) -> torch.Tensor:
     """Cross-product matrices ``(..., 3, 3)`` of vectors ``(..., 3)``: ``skew(a) @ b == cross(a, b)``."""
     x, y, z = v.unbind(-1)
+    import torch
+
     o = torch.zeros_like(x)
     return torch.stack([o, -z, y, z, o, -x, -y, x, o], -1).reshape(*v.shape[:-1], 3, 3)

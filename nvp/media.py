@@ -396,6 +396,26 @@ def iter_frames(
     return _iter_grid(probe, rate, start_frame, end)
 
 
+def frames_at(
+    path: str | os.PathLike[str], indices: np.ndarray, fps: float, chunk: int = 48
+) -> Iterator[np.ndarray]:
+    """Yield the frames of ``path`` (on the ``fps`` grid) at ``indices`` in that order (any order, e.g. a
+    ping-pong schedule), decoding at most the source frames spanned by ``chunk`` consecutive indices at a
+    time (bounded memory).
+
+    Raises:
+        MediaError: the file ends before an index.
+    """
+    for c0 in range(0, len(indices), chunk):
+        part = indices[c0 : c0 + chunk]
+        lo, hi = int(part.min()), int(part.max())
+        frames = list(iter_frames(path, fps=fps, start_frame=lo, max_frames=hi - lo + 1))
+        if len(frames) < hi - lo + 1:
+            raise MediaError(f"{path}: expected frames {lo}..{hi}, the file ended after {lo + len(frames)}")
+        for i in part:
+            yield frames[int(i) - lo]
+
+
 def _iter_grid(probe: _Probe, rate: Fraction, start: int, end: int) -> Iterator[np.ndarray]:
     info = probe.info
     p = info.path

@@ -1,4 +1,4 @@
-"""Persisting a person map and predicting a person's expressions from new audio.
+"""A person's talking style (person map + rest mouth) and predicting their expressions from new audio.
 
 ``predict_expressions`` is the audio half of ``nvp dub``: speech features → generic network → person map
 → expression coefficients ``(T, K_exp)`` at the target's frame rate.
@@ -6,23 +6,43 @@
 
 from __future__ import annotations
 
-import json
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from nvp.audio2exp import Audio2ExpressionNet, PersonMap, solve_person_map
-from nvp.corpus import VideoSample
-from nvp.errors import FormatError
+from nvp.artifact import load_artifact, save_artifact
+from nvp.audio2exp import Audio2ExpressionNet, PersonMap, audio_expressions, solve_person_map
 from nvp.face_model import FaceModel
+from nvp.tracked import TrackedSequence
 
 WINDOW_BLOCK = 2048
 """Video frames whose feature windows :func:`predict_expressions` builds at a time (25 MB for phonemes)."""
 
 FORMAT_VERSION = 1
-ASSETS = Path(__file__).parent / "assets"
+
+
+@dataclass(frozen=True)
+class VideoSample:
+    """One talking-head video ready for solving a person map, training or evaluation.
+
+    Attributes:
+        name: file name of the video.
+        windows: ``(T, W, D)`` float32 speech-feature windows, one per video frame.
+        tracked: the video's ``TrackedSequence`` (``T`` frames; expressions are the regression target).
+    """
+
+    name: str
+    windows: np.ndarray
+    tracked: TrackedSequence
+
+    @property
+    def expression(self) -> np.ndarray:
+        return self.tracked.expression
+
+    @property
+    def valid(self) -> np.ndarray:
+        return self.tracked.valid
 
 
 @dataclass(frozen=True)
@@ -46,52 +66,25 @@ class PersonStyle:
     info: dict
 
     def save(self, path: Path) -> Path:
-        """Write ``path`` (.npz) and its ``.json`` manifest atomically."""
-        path = Path(path).with_suffix(".npz")
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.stem}.tmp.npz")
-        np.savez(tmp, matrix=self.person_map.matrix, bias=self.person_map.bias, rest=self.rest_expression)
-        os.replace(tmp, path)
-        manifest = {
-            "format": "nvp.person_map",
-            "version": FORMAT_VERSION,
-            "arrays": path.name,
+        """Write ``path`` (.npz) and its ``.json`` manifest (:mod:`nvp.artifact`); returns the manifest."""
+        arrays = {
+            "matrix": self.person_map.matrix,
+            "bias": self.person_map.bias,
+            "rest": self.rest_expression,
+        }
+        fields = {
             "feature_kind": self.feature_kind,
             "audio2exp_sha256": self.audio2exp_sha256,
             "info": self.info,
         }
-        js = path.with_suffix(".json")
-        tmpj = path.with_name(f".{path.stem}.tmp.json")
-        tmpj.write_text(json.dumps(manifest, indent=2) + "\n")
-        os.replace(tmpj, js)
-        return js
+        return save_artifact(path, "person_map", FORMAT_VERSION, arrays, fields)
 
     @classmethod
     def load(cls, path: Path) -> PersonStyle:
-        js = Path(path).with_suffix(".json")
-        try:
-            m = json.loads(js.read_text())
-            if m.get("format") != "nvp.person_map" or m.get("version") != FORMAT_VERSION:
-                raise FormatError(
-                    f"{js}: expected nvp.person_map version {FORMAT_VERSION}, found "
-                    f"{m.get('format')} version {m.get('version')}"
-                )
-            with np.load(js.parent / m["arrays"]) as z:
-                pm = PersonMap(matrix=z["matrix"], bias=z["bias"])
-                rest = z["rest"]
-        except (OSError, ValueError, KeyError) as e:
-            raise FormatError(f"cannot read person map {js}: {e}") from e
-        return cls(pm, rest, m["feature_kind"], m["audio2exp_sha256"], m.get("info", {}))
-
-
-def default_audio2exp(kind: str = "phonemes") -> tuple[Audio2ExpressionNet, dict]:
-    """The generic network that ships with nvp for a feature kind, and its manifest."""
-    from nvp.train_audio2exp import load_net
-
-    path = ASSETS / f"audio2exp_{kind}.json"
-    if not path.exists():
-        raise FormatError(f"no shipped Audio2ExpressionNet for features '{kind}' ({path} missing)")
-    return load_net(path)
+        art = load_artifact(path, "person_map", FORMAT_VERSION)
+        a, m = art.arrays, art.manifest
+        pm = PersonMap(matrix=a["matrix"], bias=a["bias"])
+        return cls(pm, a["rest"], m["feature_kind"], m["audio2exp_sha256"], m.get("info", {}))
 
 
 def rest_expression(expression: np.ndarray, gap: np.ndarray, fraction: float = 0.1) -> np.ndarray:
@@ -105,8 +98,6 @@ def style_from_sample(
     net: Audio2ExpressionNet, manifest: dict, sample: VideoSample, model: FaceModel, ridge: float = 10.0
 ) -> PersonStyle:
     """A person's style from their tracked video: closed-form map on all valid frames, rest expression."""
-    from nvp.train_audio2exp import audio_expressions
-
     ok = sample.valid
     pmap = solve_person_map(audio_expressions(net, sample.windows)[ok], sample.expression[ok], ridge)
     gap = model.inner_lip_gap(sample.tracked.identity, sample.expression[ok])
@@ -127,12 +118,14 @@ def predict_expressions(
     """Expression coefficients ``(T, K_exp)`` for mono audio, at ``fps`` video frames per second.
 
     Speech features → generic network → person map; frames without voice (see
-    :func:`nvp.audio_features.voice_activity`) blend smoothly towards the person's rest expression, so
+    :func:`nvp.vad.voice_activity`) blend smoothly towards the person's rest expression, so
     pauses and silence give a closed mouth.
     """
     import torch
 
-    from nvp.audio_features import extract_features, iter_frame_windows, speaker_normalized, voice_activity
+    from nvp.audio_features import extract_features, speaker_normalized
+    from nvp.vad import voice_activity
+    from nvp.windows import iter_frame_windows
 
     feats = speaker_normalized(extract_features(audio, sample_rate, kind=style.feature_kind))
     # windows are made block by block: all of them at once would be (T, 16, 191) float32, 37 MB a minute

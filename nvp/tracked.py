@@ -3,20 +3,31 @@
 from __future__ import annotations
 
 import dataclasses
-import json
-import os
-import shutil
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+from nvp.artifact import load_artifact, save_artifact
 from nvp.errors import FormatError
+from nvp.geometry import pinhole, posed
+
+if TYPE_CHECKING:
+    from nvp.face_model import FaceModel
 
 FORMAT_VERSION = 1
 MANIFEST = "tracked.json"
-ARRAYS = "tracked.npz"
+ARRAY_FIELDS = (
+    "center",
+    "identity",
+    "rotation",
+    "translation",
+    "expression",
+    "landmarks",
+    "valid",
+    "fit_error",
+)
 
 
 @dataclass(frozen=True)
@@ -83,68 +94,48 @@ class TrackedSequence:
         per_frame = ("rotation", "translation", "expression", "landmarks", "valid", "fit_error")
         return dataclasses.replace(self, **{k: getattr(self, k)[:n] for k in per_frame})
 
+    def camera_vertices(
+        self, model: FaceModel, frames: np.ndarray, expression: np.ndarray | None = None
+    ) -> np.ndarray:
+        """``(B, V, 3)`` camera-frame vertices of ``model`` with this sequence's identity, posed like
+        ``frames`` ``(B,)``, with ``expression`` ``(B, K_exp)`` (default: the tracked expressions of
+        ``frames``)."""
+        frames = np.asarray(frames)
+        expression = self.expression[frames] if expression is None else expression
+        v = model.vertices(self.identity, expression)
+        return posed(v, self.rotation[frames], self.translation[frames])
+
+    def pixels(self, points: np.ndarray) -> np.ndarray:
+        """Pixels ``(..., V, 2)`` of camera-frame points ``(..., V, 3)`` (row 0 = top of the image)."""
+        return pinhole(points, self.focal, self.center)
+
     def save(self, out_dir: str | Path) -> Path:
-        """Write ``tracked.json`` + ``tracked.npz`` into ``out_dir`` atomically (temp dir, then rename)."""
-        out_dir = Path(out_dir)
-        out_dir.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
-        try:
-            np.savez_compressed(
-                tmp / ARRAYS,
-                center=self.center,
-                identity=self.identity,
-                rotation=self.rotation,
-                translation=self.translation,
-                expression=self.expression,
-                landmarks=self.landmarks,
-                valid=self.valid,
-                fit_error=self.fit_error,
-            )
-            manifest = {
-                "format": "nvp.tracked_sequence",
-                "version": FORMAT_VERSION,
-                "arrays": ARRAYS,
-                "fps": self.fps,
-                "width": self.width,
-                "height": self.height,
-                "focal": self.focal,
-                "num_frames": self.num_frames,
-                "valid_frames": int(self.valid.sum()),
-                "face_model_sha256": self.face_model_sha256,
-                "info": self.info,
-            }
-            (tmp / MANIFEST).write_text(json.dumps(manifest, indent=2) + "\n")
-            if out_dir.exists():
-                # replace only our own files; other outputs in out_dir (e.g. a preview) are kept
-                for name in (ARRAYS, MANIFEST):
-                    os.replace(tmp / name, out_dir / name)
-                shutil.rmtree(tmp)
-            else:
-                os.replace(tmp, out_dir)
-        except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
-        return out_dir / MANIFEST
+        """Write ``tracked.json`` + ``tracked.npz`` into ``out_dir`` (:mod:`nvp.artifact`; other files in
+        ``out_dir``, e.g. a preview, are kept). Returns the manifest path."""
+        arrays = {k: getattr(self, k) for k in ARRAY_FIELDS}
+        fields = {
+            "fps": self.fps,
+            "width": self.width,
+            "height": self.height,
+            "focal": self.focal,
+            "num_frames": self.num_frames,
+            "valid_frames": int(self.valid.sum()),
+            "face_model_sha256": self.face_model_sha256,
+            "info": self.info,
+        }
+        return save_artifact(
+            Path(out_dir) / MANIFEST, "tracked_sequence", FORMAT_VERSION, arrays, fields, True
+        )
 
     @classmethod
     def load(cls, path: str | Path) -> TrackedSequence:
         """Load from a tracking directory (or its ``tracked.json``)."""
         path = Path(path)
-        js = path / MANIFEST if path.is_dir() else path
-        try:
-            m = json.loads(js.read_text())
-        except (OSError, ValueError) as e:
-            raise FormatError(f"cannot read tracking manifest {js}: {e}") from e
-        if m.get("format") != "nvp.tracked_sequence" or m.get("version") != FORMAT_VERSION:
-            raise FormatError(
-                f"{js}: expected nvp.tracked_sequence version {FORMAT_VERSION}, "
-                f"found {m.get('format')} version {m.get('version')}"
-            )
-        try:
-            with np.load(js.parent / m["arrays"]) as z:
-                a = {k: z[k] for k in z.files}
-        except (OSError, ValueError, KeyError) as e:
-            raise FormatError(f"cannot read tracking arrays next to {js}: {e}") from e
+        art = load_artifact(path / MANIFEST if path.is_dir() else path, "tracked_sequence", FORMAT_VERSION)
+        m = art.manifest
+        missing = set(ARRAY_FIELDS) - set(art.arrays)
+        if missing:
+            raise FormatError(f"{art.path}: arrays {', '.join(sorted(missing))} missing")
         return cls(
             fps=float(m["fps"]),
             width=int(m["width"]),
@@ -152,5 +143,5 @@ class TrackedSequence:
             focal=float(m["focal"]),
             face_model_sha256=m["face_model_sha256"],
             info=m.get("info", {}),
-            **a,
+            **{k: art.arrays[k] for k in ARRAY_FIELDS},
         )

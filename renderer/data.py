@@ -15,53 +15,17 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from nvp.artifact import load_artifact, save_artifact
+from nvp.errors import FormatError
 from nvp.face_model import FaceModel
 from nvp.tracked import TrackedSequence
 from renderer.crop import crop_boxes, crop_camera, cut
 from renderer.masks import dilate
+from renderer.preset import Preset
+
+CACHE_FIELDS = ("frames", "crops", "uv", "mask", "mouth", "region", "boxes")
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class Preset:
-    """Resolution and network size of a renderer, plus its default training length."""
-
-    name: str
-    crop: int
-    """Side in pixels of the face crop the networks render (divisible by 16)."""
-    base: int
-    """U-Net base feature channels."""
-    dilated: bool
-    """Dilated stride-1 U-Nets (the paper; GPU) instead of strided ones (CPU)."""
-    texture_size: int
-    """Neural texture resolution (16 channels)."""
-    steps: int
-    """Default training steps."""
-    batch: int
-    """Crops per training step."""
-    region_grow: float = 0.015
-    """The face region that is blanked in the background input and re-rendered: the mesh grown by this
-    fraction of the crop side (see :func:`face_region`). The band around the mesh is painted by the
-    compositing network from the surrounding footage and loses detail there (collar and tie under the
-    chin), so it is kept narrow: held-out crop PSNR on dfrf__cnn2 after 10 minutes of training 29.2 dB
-    with 0.06, 31.9 with 0.03, 34.3 with 0.015. A dub blanks the union of the footage's and the new
-    geometry's regions, so the footage's own chin is covered wherever the tracked mesh fits it."""
-
-
-PRESETS = {
-    "cpu": Preset("cpu", crop=192, base=16, dilated=False, texture_size=256, steps=8000, batch=2),
-    "quality": Preset("quality", crop=256, base=32, dilated=False, texture_size=256, steps=12000, batch=4),
-    "paper": Preset("paper", crop=256, base=32, dilated=True, texture_size=256, steps=50000, batch=1),
-}
-
-
-def get_preset(name: str) -> Preset:
-    from nvp.errors import NvpError
-
-    if name not in PRESETS:
-        raise NvpError(f"unknown renderer preset {name!r}; choose one of {', '.join(PRESETS)}")
-    return PRESETS[name]
 
 
 @dataclass
@@ -86,19 +50,9 @@ class FrameGeometry:
     lower: torch.Tensor | None = None
 
 
-def camera_vertices(
-    model: FaceModel, seq: TrackedSequence, frames: np.ndarray, expression: np.ndarray
-) -> np.ndarray:
-    """``(B, V, 3)`` camera-frame vertices of ``expression`` ``(B, K_exp)`` under the pose of ``frames``."""
-    v = model.vertices(seq.identity, expression)
-    return np.einsum("bij,bvj->bvi", seq.rotation[frames], v) + seq.translation[frames, None]
-
-
 def sequence_boxes(model: FaceModel, seq: TrackedSequence) -> np.ndarray:
     """``(T, 3)`` crop boxes of a whole tracked sequence (from its tracked geometry)."""
-    v = camera_vertices(model, seq, np.arange(seq.num_frames), seq.expression)
-    pts = seq.focal * v[..., :2] / v[..., 2:] + seq.center
-    return crop_boxes(pts)
+    return crop_boxes(seq.pixels(seq.camera_vertices(model, np.arange(seq.num_frames))))
 
 
 class Rasterizer:
@@ -181,18 +135,19 @@ class FrameCache:
         )
         return crops.to(device), geo
 
-    def save(self, path: Path) -> None:
-        tmp = path.with_name(path.stem + ".tmp.npz")
-        np.savez(
-            tmp,
-            **{k: getattr(self, k) for k in ("frames", "crops", "uv", "mask", "mouth", "region", "boxes")},
-        )
-        tmp.replace(path)
+    def save(self, path: Path, source: dict | None = None) -> Path:
+        """Write ``path`` (``.json`` + ``.npz``, :mod:`nvp.artifact`); ``source`` says what it was cut from
+        (checked by :meth:`load` so a cache is never reused for other footage)."""
+        arrays = {k: getattr(self, k) for k in CACHE_FIELDS}
+        return save_artifact(path, "renderer_frames", 1, arrays, {"source": source or {}})
 
     @classmethod
-    def load(cls, path: Path) -> FrameCache:
-        with np.load(path) as z:
-            return cls(**{k: z[k] for k in z.files})
+    def load(cls, path: Path, source: dict | None = None) -> FrameCache:
+        """Read a cache written by :meth:`save`; with ``source``, it must match the one saved."""
+        art = load_artifact(path, "renderer_frames", 1)
+        if source is not None and art.manifest.get("source") != source:
+            raise FormatError(f"{art.path} was made from other footage or settings")
+        return cls(**{k: art.arrays[k] for k in CACHE_FIELDS})
 
 
 def build_cache(
@@ -231,7 +186,7 @@ def build_cache(
             frame = torch.from_numpy(img).permute(2, 0, 1)[None]
             crop = cut(frame, torch.from_numpy(boxes[t : t + 1]).float(), s)[0]
             cache.crops[i] = crop.clamp(0, 255).round().byte().permute(1, 2, 0).numpy()
-            v = camera_vertices(model, seq, np.array([t]), seq.expression[t : t + 1])[0]
+            v = seq.camera_vertices(model, np.array([t]))[0]
             g = rast(v, seq.focal, seq.center, boxes[t])
             cache.uv[i] = g.uv[0].numpy().astype(np.float16)
             cache.mask[i] = g.mask[0, 0].numpy() > 0.5

@@ -7,13 +7,21 @@ background (6 channels) and outputs the final image, inpainting the seam.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from nvp.artifact import load_artifact, save_artifact
+from nvp.errors import FormatError
 from renderer import masks
+from renderer.preset import Preset
+
+FORMAT_VERSION = 5  # 2: the interior render is kept inside the mesh; 3: opaque inside the region;
+# 4: the preset records its region_grow (version 3 files were all trained with 0.06 and still load);
+# 5: the compositing network is given the blanked region (versions 3 and 4 load without it)
 
 
 class NeuralTexture(nn.Module):
@@ -159,3 +167,32 @@ def inner_weight(mask: torch.Tensor, erode: float = 0.015) -> torch.Tensor:
 
 def count_parameters(module: nn.Module) -> int:
     return sum(p.numel() for p in module.parameters())
+
+
+def make_renderer(preset: Preset, region_input: bool = True) -> NeuralRenderer:
+    return NeuralRenderer(
+        UNetConfig(base=preset.base, dilated=preset.dilated),
+        texture_size=preset.texture_size,
+        region_input=region_input,
+    )
+
+
+def save_renderer(net: NeuralRenderer, out_dir: Path, preset: Preset, info: dict) -> Path:
+    """Write ``renderer.npz`` (weights) and ``renderer.json`` (format, preset, provenance) atomically."""
+    arrays = {k: v.detach().cpu().numpy() for k, v in net.state_dict().items()}
+    return save_artifact(
+        Path(out_dir) / "renderer", "renderer", FORMAT_VERSION, arrays, {"preset": asdict(preset), **info}
+    )
+
+
+def load_renderer(out_dir: Path, device: str = "cpu") -> tuple[NeuralRenderer, Preset, dict]:
+    """A saved renderer in eval mode on ``device``, its preset and its manifest."""
+    art = load_artifact(Path(out_dir) / "renderer.json", "renderer", (3, 4, FORMAT_VERSION))
+    m = art.manifest
+    try:
+        preset = Preset(**{"region_grow": 0.06, **m["preset"]})
+        net = make_renderer(preset, region_input=m["version"] >= 5)
+        net.load_state_dict({k: torch.from_numpy(v) for k, v in art.arrays.items()})
+    except (TypeError, KeyError, RuntimeError) as e:
+        raise FormatError(f"cannot load renderer from {out_dir}: {e}") from e
+    return net.to(device).eval(), preset, m

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -10,8 +11,8 @@ import torch
 from nvp.face_model import FaceModel
 from nvp.tracked import TrackedSequence
 from renderer.crop import cut, feather, paste, region_weight
-from renderer.data import Rasterizer, blank_face, camera_vertices, face_region, sequence_boxes
-from renderer.train import load_renderer
+from renderer.data import Rasterizer, blank_face, face_region, sequence_boxes
+from renderer.networks import load_renderer
 
 LOWER_FACE = 0.02
 """Mouth weight (``FaceModel.mouth_weights``) above which a mesh pixel is part of the re-rendered lower
@@ -47,8 +48,7 @@ class FrameRenderer:
 
     def tracked(self, index: int) -> np.ndarray:
         """``(V, 3)`` camera-frame vertices of frame ``index`` as tracked."""
-        expression = self.seq.expression[index : index + 1]
-        return camera_vertices(self.model, self.seq, np.array([index]), expression)[0]
+        return self.seq.camera_vertices(self.model, np.array([index]))[0]
 
     @torch.inference_mode()
     def render(
@@ -82,3 +82,41 @@ class FrameRenderer:
         weight = self.weight * region_weight(paint)
         out = paste(img, final[0].cpu() * 255, box, weight, detail=(crop[0] * 255, 1 - paint))
         return out.clamp(0, 255).round().byte().permute(1, 2, 0).numpy()
+
+
+Geometry = Callable[[int, int, np.ndarray], np.ndarray]
+"""``(j, index, tracked_cam) → (V, 3)`` camera-frame vertices to render for output frame ``j`` over footage
+frame ``index`` whose tracked vertices are ``tracked_cam``."""
+
+
+def render_frames(
+    fr: FrameRenderer,
+    frames: Iterable[np.ndarray],
+    indices: Sequence[int],
+    variants: Mapping[str, Geometry | None],
+    progress: bool = True,
+    desc: str = "render",
+) -> Iterator[tuple[np.ndarray, dict[str, np.ndarray]]]:
+    """The one render loop: footage ``frames`` (``(H, W, 3)`` uint8, one per entry of ``indices``, the
+    footage frame each one is) in; for each, the footage frame and its renders ``{name: (H, W, 3) uint8}``
+    out, with a progress bar that is closed however the loop ends (an error, or the consumer stopping).
+
+    A variant ``None`` re-renders the frame from its own tracking (re-creation); a :data:`Geometry` renders
+    ``geometry(j, index, tracked_cam)`` and the replaced region also covers the tracked face (a dub)."""
+    from tqdm import tqdm
+
+    bar = tqdm(total=len(indices), desc=desc, unit="frame", disable=not progress)
+    try:
+        for j, (k, frame) in enumerate(zip(indices, frames, strict=False)):
+            k = int(k)
+            tracked = fr.tracked(k)
+            out = {
+                name: fr.render(frame, k, tracked)
+                if geo is None
+                else fr.render(frame, k, geo(j, k, tracked), tracked)
+                for name, geo in variants.items()
+            }
+            yield frame, out
+            bar.update(1)
+    finally:
+        bar.close()

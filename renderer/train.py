@@ -18,18 +18,15 @@ import torch
 from tqdm import tqdm
 
 from nvp.errors import FormatError
-from renderer.data import FrameCache, Preset, blank_face, get_preset
-from renderer.networks import NeuralRenderer, UNetConfig, count_parameters
+from renderer.data import FrameCache, blank_face
+from renderer.networks import count_parameters, make_renderer, save_renderer
+from renderer.preset import Preset, get_preset
 
 log = logging.getLogger(__name__)
-FORMAT = "nvp.renderer"
-FORMAT_VERSION = 5  # 2: the interior render is kept inside the mesh; 3: opaque inside the region;
-# 4: the preset records its region_grow (version 3 files were all trained with 0.06 and still load);
-# 5: the compositing network is given the blanked region (versions 3 and 4 load without it)
 
 
 @dataclass(frozen=True)
-class TrainConfig:
+class RendererTrainConfig:
     """Renderer training settings (saved with the weights)."""
 
     preset: str = "cpu"
@@ -69,7 +66,11 @@ def l1_masked(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> t
 
 
 def renderer_loss(
-    interior: torch.Tensor, final: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, cfg: TrainConfig
+    interior: torch.Tensor,
+    final: torch.Tensor,
+    target: torch.Tensor,
+    mask: torch.Tensor,
+    cfg: RendererTrainConfig,
 ) -> torch.Tensor:
     """L1(final) + w_i · masked L1(interior) + w_s · (1 - SSIM(final)) for images ``(B, 3, H, W)``."""
     from kornia.losses import ssim_loss
@@ -78,7 +79,7 @@ def renderer_loss(
     return loss + cfg.ssim_weight * 2 * ssim_loss(final, target, window_size=7)
 
 
-def learning_rate(cfg: TrainConfig, progress: float) -> float:
+def learning_rate(cfg: RendererTrainConfig, progress: float) -> float:
     """Cosine-decayed learning rate at ``progress`` (0 = start, 1 = end of training)."""
     p = min(max(progress, 0.0), 1.0)
     return float(cfg.lr * (cfg.lr_final + (1 - cfg.lr_final) * 0.5 * (1 + np.cos(np.pi * p))))
@@ -98,45 +99,6 @@ def mix_regions(
     return region
 
 
-def make_renderer(preset: Preset, region_input: bool = True) -> NeuralRenderer:
-    return NeuralRenderer(
-        UNetConfig(base=preset.base, dilated=preset.dilated),
-        texture_size=preset.texture_size,
-        region_input=region_input,
-    )
-
-
-def save_renderer(net: NeuralRenderer, out_dir: Path, preset: Preset, info: dict) -> Path:
-    """Write ``renderer.npz`` (weights) and ``renderer.json`` (format, preset, provenance) atomically."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    tmp = out_dir / ".renderer.tmp.npz"
-    np.savez(tmp, **{k: v.detach().cpu().numpy() for k, v in net.state_dict().items()})
-    os.replace(tmp, out_dir / "renderer.npz")
-    manifest = {"format": FORMAT, "version": FORMAT_VERSION, "preset": asdict(preset), **info}
-    tmpj = out_dir / ".renderer.tmp.json"
-    tmpj.write_text(json.dumps(manifest, indent=2) + "\n")
-    os.replace(tmpj, out_dir / "renderer.json")
-    return out_dir / "renderer.json"
-
-
-def load_renderer(out_dir: Path, device: str = "cpu") -> tuple[NeuralRenderer, Preset, dict]:
-    js = Path(out_dir) / "renderer.json"
-    try:
-        m = json.loads(js.read_text())
-        if m.get("format") != FORMAT or m.get("version") not in (3, 4, FORMAT_VERSION):
-            raise FormatError(
-                f"{js}: expected {FORMAT} version {FORMAT_VERSION}, "
-                f"found {m.get('format')} {m.get('version')}"
-            )
-        preset = Preset(**{"region_grow": 0.06, **m["preset"]})
-        net = make_renderer(preset, region_input=m["version"] >= 5)
-        with np.load(js.parent / "renderer.npz") as z:
-            net.load_state_dict({k: torch.from_numpy(z[k]) for k in z.files})
-    except (OSError, ValueError, KeyError, RuntimeError) as e:
-        raise FormatError(f"cannot load renderer from {out_dir}: {e}") from e
-    return net.to(device).eval(), preset, m
-
-
 def _preview(path: Path, target: torch.Tensor, interior: torch.Tensor, final: torch.Tensor) -> None:
     from PIL import Image
 
@@ -146,7 +108,7 @@ def _preview(path: Path, target: torch.Tensor, interior: torch.Tensor, final: to
 
 def train_renderer(
     cache: FrameCache,
-    cfg: TrainConfig,
+    cfg: RendererTrainConfig,
     out_dir: Path,
     device: str = "cpu",
     progress: bool = True,

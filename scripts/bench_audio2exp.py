@@ -38,9 +38,9 @@ FPS = 25.0
 
 def _style(kind: str):
     """A person style for the shipped net of ``kind`` (a random but plausible map: speed only)."""
-    from nvp.audio2exp import PersonMap
+    from nvp.audio2exp import PersonMap, default_audio2exp
     from nvp.face_model import default_face_model
-    from nvp.person import PersonStyle, default_audio2exp
+    from nvp.person import PersonStyle
 
     net, manifest = default_audio2exp(kind)
     k = default_face_model().num_exp

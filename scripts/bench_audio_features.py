@@ -70,7 +70,8 @@ def child(kind: str, path: str) -> None:
     import scipy.ndimage  # noqa: F401
     import scipy.signal  # noqa: F401
 
-    from nvp.audio_features import features_from_file, frame_windows
+    from nvp.audio_features import features_from_file
+    from nvp.windows import frame_windows
 
     base = maxrss_mb()
     t0 = time.perf_counter()
@@ -122,8 +123,9 @@ def main() -> None:
 
     import soundfile as sf
 
-    from nvp.audio_features import extract_features, frame_windows
+    from nvp.audio_features import extract_features
     from nvp.media import read_audio
+    from nvp.windows import frame_windows
 
     lines: list[str] = []
 

@@ -22,7 +22,7 @@ from pathlib import Path
 
 
 def child(audio: str, person: str, out: str) -> None:
-    from nvp.pipeline import dub
+    from nvp.app.dub import dub
 
     t0 = time.perf_counter()
     r = dub(audio, person, out, progress=False)
@@ -43,8 +43,9 @@ def main(argv: list[str] | None = None) -> int:
     import numpy as np
     import soundfile as sf
 
-    from nvp.demo import AUDIO_RATE, _speech, _synth_voice, make_demo_clip
-    from nvp.pipeline import FitConfig, fit
+    from nvp.app.demo_clip import make_demo_clip
+    from nvp.app.demo_voice import AUDIO_RATE, speech_script, synth_voice
+    from nvp.app.fit import FitConfig, fit
 
     print(f"# bench_dub ({platform.machine()}, {os.cpu_count()} CPUs, load {os.getloadavg()[0]:.2f})")
     with tempfile.TemporaryDirectory() as tmp:
@@ -55,7 +56,7 @@ def main(argv: list[str] | None = None) -> int:
             person = fit(clip.path, tmp / "person", FitConfig(steps=2), progress=False).root
         rng = np.random.default_rng(3)
         wav = tmp / "speech.wav"
-        sf.write(wav, _synth_voice(_speech(args.seconds, rng), args.seconds, rng), AUDIO_RATE)
+        sf.write(wav, synth_voice(speech_script(args.seconds, rng), args.seconds, rng), AUDIO_RATE)
         proc = subprocess.run(
             [sys.executable, __file__, "--child", str(wav), str(person), str(tmp / "dub.mp4")],
             capture_output=True,

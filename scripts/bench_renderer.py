@@ -37,17 +37,19 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
 
     from nvp.face_model import default_face_model
-    from renderer.data import PRESETS, FrameCache, camera_vertices
+    from renderer.data import FrameCache
     from renderer.gl import GLRasterizer
+    from renderer.networks import make_renderer, save_renderer
+    from renderer.preset import PRESETS
     from renderer.render import FrameRenderer
-    from renderer.train import TrainConfig, make_renderer, save_renderer, train_renderer
+    from renderer.train import RendererTrainConfig, train_renderer
     from tracking.synthetic import synthetic_tracked
 
     model = default_face_model()
     size = 512
     t = args.frames
     seq = synthetic_tracked(model, frames=t, size=size, focal=1024.0)
-    verts = camera_vertices(model, seq, np.arange(t), seq.expression)
+    verts = seq.camera_vertices(model, np.arange(t))
     print(
         f"# bench_renderer ({platform.machine()}, {os.cpu_count()} CPUs, load {os.getloadavg()[0]:.2f}, "
         f"torch {torch.__version__}, {torch.get_num_threads()} threads)\n"
@@ -93,9 +95,13 @@ def main(argv: list[str] | None = None) -> int:
                 boxes=np.zeros((8, 3), np.float32),
             )
             steps = 2 if p.dilated else args.steps
-            train_renderer(cache, TrainConfig(preset=name, steps=1), Path(tmp) / "warm", progress=False)
+            train_renderer(
+                cache, RendererTrainConfig(preset=name, steps=1), Path(tmp) / "warm", progress=False
+            )
             t0 = time.perf_counter()
-            train_renderer(cache, TrainConfig(preset=name, steps=steps), Path(tmp) / "t", progress=False)
+            train_renderer(
+                cache, RendererTrainConfig(preset=name, steps=steps), Path(tmp) / "t", progress=False
+            )
             step_s = (time.perf_counter() - t0) / steps
         row = {
             "preset": name,

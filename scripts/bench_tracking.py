@@ -55,7 +55,7 @@ def loop_video(src: Path, dst: Path, seconds: float) -> None:
 
 
 def make_clip(size: int, seconds: float, path: Path) -> Path:
-    from nvp.demo import make_demo_clip
+    from nvp.app.demo_clip import make_demo_clip
 
     make_demo_clip(path, seconds=seconds, size=size)
     return path
@@ -87,7 +87,7 @@ def bench_512(video: Path) -> dict:
 
 def bench_memory(video: Path) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
-        cmd = [sys.executable, "-m", "nvp.cli", "-q", "track", str(video), "-o", str(Path(tmp) / "track")]
+        cmd = [sys.executable, "-m", "nvp.app.cli", "-q", "track", str(video), "-o", str(Path(tmp) / "track")]
         t = time.perf_counter()
         proc = subprocess.run(cmd, capture_output=True, text=True)
         wall = time.perf_counter() - t

@@ -4,8 +4,8 @@
 
 1. Held-out time of validation videos (never seen by the generic network): the person map is solved on the
    first 80 % of each video, the last 20 % is predicted from its audio. Metrics (see
-   ``nvp.train_audio2exp.evaluate_person``): mouth landmark error / IOD, lip vertex error (mm), correlation
-   of predicted and tracked mouth opening, lip-closure F1. Rows: phonemes net, the same net without its
+   ``nvp.app.train_audio2exp.evaluate_person``): mouth landmark error / IOD, lip vertex error (mm),
+   correlation of predicted and tracked mouth opening, lip-closure F1. Rows: phonemes net, the same net without its
    temporal filter, mel net (if given), and the person's-mean-expression baseline.
 2. Robustness: the longest validation person's style driven by every clip in ../shared/data/audio (other
    languages, singing, text-to-speech) and by silence: correlation between predicted mouth opening and the
@@ -21,13 +21,14 @@ from pathlib import Path
 
 import numpy as np
 
-from nvp.audio_features import rms_envelope_db, voice_activity
-from nvp.corpus import load_sample
+from nvp.app.corpus import load_sample
+from nvp.app.report import markdown_table
+from nvp.app.train_audio2exp import evaluate_person
+from nvp.audio2exp import audio_expressions, load_net
 from nvp.face_model import default_face_model
 from nvp.media import read_audio
 from nvp.person import predict_expressions, style_from_sample
-from nvp.report import markdown_table
-from nvp.train_audio2exp import audio_expressions, evaluate_person, load_net
+from nvp.vad import rms_envelope_db, voice_activity
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 ASSETS = Path(__file__).resolve().parents[1] / "nvp" / "assets"

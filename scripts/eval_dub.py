@@ -30,12 +30,11 @@ TTS_TEXT = "Good evening. Tonight we look at how a photograph and a short record
 
 
 def measure(result, bundle_dir: Path) -> dict:
+    from nvp.app.dub import dubbed_vertices
     from nvp.face_model import default_face_model
     from nvp.media import probe_video
     from nvp.metrics import interocular_distance
-    from nvp.pipeline import dubbed_vertices
     from nvp.tracked import TrackedSequence
-    from renderer.data import camera_vertices
     from tracking.detect import detect_video
 
     model = default_face_model()
@@ -46,7 +45,7 @@ def measure(result, bundle_dir: Path) -> dict:
     expected = []
     weights = model.mouth_weights()
     for j, k in enumerate(result.target_frames):
-        tracked = camera_vertices(model, seq, np.array([k]), seq.expression[k : k + 1])[0]
+        tracked = seq.camera_vertices(model, np.array([k]))[0]
         v = dubbed_vertices(model, seq, int(k), result.expression[j], weights, tracked)[
             model.landmark_vertices[lips]
         ]
@@ -91,7 +90,7 @@ def strip(result, out: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from nvp.report import write_results
+    from nvp.app.report import write_results
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--targets", nargs="+", default=TARGETS)
@@ -103,7 +102,8 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     import soundfile as sf
 
-    from nvp.pipeline import FitConfig, dub, fit
+    from nvp.app.dub import dub
+    from nvp.app.fit import FitConfig, fit
     from nvp.provenance import verify
     from nvp.tts import synthesize
 

@@ -25,14 +25,15 @@ DEFAULT_VIDEOS = ["dfrf__cnn2_25fps.mp4", "mimictalk__German_20s.mp4", "styletal
 
 
 def evaluate(video: Path, out: Path, preset: str, budget_min: float, cache_dir: Path) -> dict:
-    from nvp.corpus import tracked_cached
+    from nvp.app.corpus import tracked_cached
     from nvp.face_model import default_face_model
     from nvp.media import iter_frames
     from nvp.metrics import psnr, ssim
     from renderer.crop import box_slices
-    from renderer.data import FrameCache, build_cache, get_preset
+    from renderer.data import FrameCache, build_cache
+    from renderer.preset import get_preset
     from renderer.render import FrameRenderer
-    from renderer.train import TrainConfig, train_renderer
+    from renderer.train import RendererTrainConfig, train_renderer
 
     model = default_face_model()
     seq = tracked_cached(video, cache_dir, progress=False)
@@ -45,7 +46,7 @@ def evaluate(video: Path, out: Path, preset: str, budget_min: float, cache_dir: 
     else:
         cache = build_cache(video, seq, model, get_preset(preset), np.arange(split))
         cache.save(cp)
-    train_renderer(cache, TrainConfig(preset=preset, steps=10**6, budget_s=budget_min * 60), out)
+    train_renderer(cache, RendererTrainConfig(preset=preset, steps=10**6, budget_s=budget_min * 60), out)
     manifest = json.loads((out / "renderer.json").read_text())
     test = np.arange(split, seq.num_frames)
     rows, t_render = [], 0.0
@@ -90,7 +91,7 @@ def evaluate(video: Path, out: Path, preset: str, budget_min: float, cache_dir: 
 
 
 def main(argv: list[str] | None = None) -> int:
-    from nvp.report import write_results
+    from nvp.app.report import write_results
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--videos", nargs="+", default=DEFAULT_VIDEOS)

@@ -22,9 +22,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from nvp.face_model import default_face_model
+from nvp.geometry import pinhole, posed
 from nvp.media import iter_frames
 from nvp.metrics import inner_lip_gap, interocular_distance, jitter, landmark_error
-from tracking.fit import projected_vertices
 from tracking.preview import draw_overlay, mesh_edges
 from tracking.track import track_video
 
@@ -48,7 +48,7 @@ def stills(video: Path, seq, model, frames: dict[str, int], out: Path) -> None:
     import cv2
 
     verts = model.vertices(seq.identity, seq.expression)
-    uv = projected_vertices(verts, seq.rotation, seq.translation, seq.focal, seq.center)
+    uv = pinhole(posed(verts, seq.rotation, seq.translation), seq.focal, seq.center)
     edges = mesh_edges(model.triangles)
     want = {i: name for name, i in frames.items()}
     rows = []
@@ -77,7 +77,7 @@ def evaluate(video: Path, out_dir: Path) -> dict:
     seconds = time.perf_counter() - t0
     seq.save(out_dir / video.stem)
     verts = model.vertices(seq.identity, seq.expression)[:, model.landmark_vertices]
-    fitted = projected_vertices(verts, seq.rotation, seq.translation, seq.focal, seq.center)
+    fitted = pinhole(posed(verts, seq.rotation, seq.translation), seq.focal, seq.center)
     lm = seq.landmarks
     ok = seq.valid
     iod = interocular_distance(lm, g["left_eye"], g["right_eye"])

@@ -25,8 +25,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     import soundfile as sf
 
+    from nvp.app.dub import dub
     from nvp.errors import NvpError
-    from nvp.pipeline import dub
     from nvp.tts import synthesize
 
     try:

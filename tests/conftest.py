@@ -21,7 +21,7 @@ def synthetic():
 @pytest.fixture(scope="session")
 def demo_clip(tmp_path_factory):
     """A 1.2 s, 256x256 talking clip (mp4 with audio) animated from the astronaut photo."""
-    from nvp.demo import make_demo_clip
+    from nvp.app.demo_clip import make_demo_clip
 
     path = tmp_path_factory.mktemp("demo") / "clip.mp4"
     return make_demo_clip(path, seconds=1.2, size=256)

@@ -1,48 +1,140 @@
-"""Import rules from DESIGN.md, checked on the source tree."""
+"""Import rules from DESIGN.md, checked on the source tree with no allow-list.
+
+Floors, arrows only downward:
+
+| floor  | packages                 | may import                                   |
+|--------|--------------------------|----------------------------------------------|
+| roof   | ``nvp.app``              | everything below                             |
+| middle | ``tracking``             | ``nvp`` core, ``renderer.raster``            |
+| middle | ``renderer``             | ``nvp`` core                                 |
+| ground | ``nvp`` (not ``nvp.app``) | ``nvp`` core only                            |
+
+Every import statement counts, at module level or inside a function. On top of that, each module is
+imported in a fresh interpreter and the modules it drags in (indirectly, through module-level imports)
+must obey the same rules. Inference code never imports training code (``train*`` modules).
+"""
 
 from __future__ import annotations
 
 import ast
+import json
 import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
-# nvp modules that are allowed to reach into tracking/renderer (pipeline level and the CLI)
-PIPELINE = {"cli.py", "demo.py", "pipeline.py", "corpus.py", "evaluate.py"}
+PACKAGES = ("nvp", "tracking", "renderer")
 
 
-def imported_packages(path: Path) -> set[str]:
+def module_name(path: Path) -> str:
+    rel = path.relative_to(ROOT).with_suffix("")
+    parts = rel.parts[:-1] if rel.name == "__init__" else rel.parts
+    return ".".join(parts)
+
+
+def all_modules() -> dict[str, Path]:
+    return {module_name(p): p for pkg in PACKAGES for p in sorted((ROOT / pkg).rglob("*.py"))}
+
+
+def imports_of(path: Path) -> set[str]:
+    """Absolute module names imported anywhere in ``path`` (relative imports resolved)."""
     tree = ast.parse(path.read_text())
+    here = module_name(path).split(".")
     names = set()
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
-            names |= {a.name.split(".")[0] for a in node.names}
-        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            names.add(node.module.split(".")[0])
+            names |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                pkg = here if path.name == "__init__.py" else here[:-1]
+                base = ".".join(pkg[: len(pkg) - node.level + 1] + ([base] if base else []))
+            names.add(base)
+            names |= {f"{base}.{a.name}" for a in node.names}  # `from nvp.app import fit` is nvp.app.fit
     return names
 
 
-def test_core_imports_neither_tracking_nor_renderer():
-    for path in (ROOT / "nvp").rglob("*.py"):
-        if path.name in PIPELINE:
-            continue
-        bad = imported_packages(path) & {"tracking", "renderer", "scripts"}
-        assert not bad, f"{path.relative_to(ROOT)} imports {bad}"
+def floor(module: str) -> str | None:
+    if module == "nvp.app" or module.startswith("nvp.app."):
+        return "app"
+    top = module.split(".")[0]
+    return {"nvp": "core", "tracking": "tracking", "renderer": "renderer", "scripts": "scripts"}.get(top)
 
 
-def test_renderer_never_imports_tracking():
-    for path in (ROOT / "renderer").rglob("*.py"):
-        assert "tracking" not in imported_packages(path), path
+def allowed(src: str, dst: str) -> bool:
+    """Whether module ``src`` may import module ``dst`` (both inside the project)."""
+    a, b = floor(src), floor(dst)
+    if b is None or a == b:
+        return b != "scripts"
+    if b == "scripts":
+        return False
+    if a == "app":
+        return True
+    if a == "tracking":
+        return b == "core" or dst == "renderer.raster" or dst.startswith("renderer.raster.")
+    if a == "renderer":
+        return b == "core"
+    return False  # core imports nothing above it
 
 
-def test_packages_never_import_scripts():
-    for pkg in ("nvp", "tracking", "renderer"):
-        for path in (ROOT / pkg).rglob("*.py"):
-            assert "scripts" not in imported_packages(path), path
+def is_training(module: str) -> bool:
+    return module.rsplit(".", 1)[-1].startswith("train")
+
+
+def test_the_rules_themselves():
+    assert allowed("nvp.app.cli", "renderer.render") and allowed("nvp.app.fit", "tracking.track")
+    assert not allowed("nvp.person", "nvp.app.corpus") and not allowed("nvp.media", "tracking.detect")
+    assert not allowed("renderer.render", "tracking.fit") and allowed("tracking.track", "renderer.raster")
+    assert not allowed("tracking.track", "renderer.render") and not allowed("nvp.app.cli", "scripts.x")
+    src = "from nvp.app import fit\nimport tracking.track\n"
+    p = ROOT / "nvp" / "_probe_for_test.py"
+    try:
+        p.write_text(src)
+        assert {"nvp.app.fit", "tracking.track"} <= imports_of(p)
+    finally:
+        p.unlink()
+
+
+@pytest.mark.parametrize("module", sorted(all_modules()))
+def test_no_import_points_upward(module):
+    path = all_modules()[module]
+    project = [m for m in imports_of(path) if floor(m) is not None]
+    bad = sorted(m for m in project if not allowed(module, m))
+    assert not bad, f"{path.relative_to(ROOT)} imports {bad}"
+
+
+@pytest.mark.parametrize(
+    "module", sorted(m for m in all_modules() if not is_training(m) and floor(m) != "app")
+)
+def test_inference_never_imports_training(module):
+    path = all_modules()[module]
+    bad = sorted(m for m in imports_of(path) if floor(m) is not None and is_training(m))
+    assert not bad, f"{path.relative_to(ROOT)} imports training code {bad}"
+
+
+def test_indirect_imports_obey_the_rules_too():
+    """Import every module below the roof in a fresh interpreter; what comes along must be allowed."""
+    mods = sorted(m for m in all_modules() if floor(m) != "app")
+    code = (
+        "import importlib, json, sys\n"
+        f"out = {{}}\nfor m in {mods!r}:\n"
+        "    before = set(sys.modules)\n"
+        "    importlib.import_module(m)\n"
+        "    out[m] = sorted(set(sys.modules) - before)\n"
+        "    for k in out[m]:\n"
+        "        if k.split('.')[0] in ('nvp', 'tracking', 'renderer'): sys.modules.pop(k, None)\n"
+        "print(json.dumps(out))\n"
+    )
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True)
+    loaded = json.loads(res.stdout.strip().splitlines()[-1])
+    bad = {m: [d for d in deps if floor(d) is not None and not allowed(m, d)] for m, deps in loaded.items()}
+    bad = {m: d for m, d in bad.items() if d}
+    assert not bad, f"modules that drag in upper floors: {bad}"
 
 
 def test_help_is_instant_no_heavy_imports():
-    code = "import sys, nvp.cli; print(sorted({'torch','mediapipe','av','cv2'} & set(sys.modules)))"
+    code = "import sys, nvp.app.cli; print(sorted({'torch','mediapipe','av','cv2'} & set(sys.modules)))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"

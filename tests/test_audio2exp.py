@@ -8,17 +8,19 @@ import numpy as np
 import pytest
 import torch
 
+from nvp.app.train_audio2exp import Audio2ExpTrainConfig, evaluate_person, train
 from nvp.audio2exp import (
     Audio2ExpConfig,
     Audio2ExpressionNet,
     ExpressionFilter,
     PerFrameNet,
     VertexMetric,
+    load_net,
+    save_net,
     solve_person_map,
 )
-from nvp.corpus import VideoSample
+from nvp.person import VideoSample
 from nvp.tracked import TrackedSequence
-from nvp.train_audio2exp import TrainConfig, evaluate_person, load_net, save_net, train
 
 CFG = Audio2ExpConfig(feature_dim=12)
 
@@ -134,7 +136,7 @@ def test_mean_expression_baseline_and_perfect_prediction(face_model):
 def test_training_learns_and_resumes_exactly(face_model, tmp_path):
     train_set = [fake_sample(face_model, f"v{i}", i) for i in range(3)]
     val_set = [fake_sample(face_model, "val", 9)]
-    cfg = TrainConfig(steps=40, batch=16, lr=3e-3, val_every=20, net=CFG)
+    cfg = Audio2ExpTrainConfig(steps=40, batch=16, lr=3e-3, val_every=20, net=CFG)
     straight = train(train_set, val_set, face_model, cfg, tmp_path / "a", progress=False)
     assert straight["log"][-1]["train_loss"] < straight["log"][0]["train_loss"] * 1.5
     first = train(

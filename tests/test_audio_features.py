@@ -21,15 +21,13 @@ from nvp.audio_features import (
     _phoneme_chunks,
     extract_features,
     features_from_file,
-    frame_windows,
     mel_filterbank,
-    num_video_frames,
     phoneme_labels,
-    rms_envelope_db,
     speaker_normalized,
-    speech_activity,
 )
 from nvp.errors import MediaError, NvpError
+from nvp.vad import rms_envelope_db, speech_activity
+from nvp.windows import frame_windows, num_video_frames
 
 SR = SAMPLE_RATE
 
@@ -419,7 +417,7 @@ def test_speaker_normalisation_leaves_phoneme_posteriors_alone():
 
 
 def test_voice_activity_follows_speech_and_silence():
-    from nvp.audio_features import voice_activity
+    from nvp.vad import voice_activity
 
     rng = np.random.default_rng(0)
     audio = np.zeros(16000 * 4, np.float32)

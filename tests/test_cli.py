@@ -14,7 +14,7 @@ from nvp.tracked import TrackedSequence
 
 def nvp(*args, cwd=None):
     return subprocess.run(
-        [sys.executable, "-m", "nvp.cli", "-q", *map(str, args)],
+        [sys.executable, "-m", "nvp.app.cli", "-q", *map(str, args)],
         capture_output=True,
         text=True,
         cwd=cwd,
@@ -71,5 +71,5 @@ def test_track_demo_clip_end_to_end(demo_clip, tmp_path):
 
 
 def test_help_lists_commands():
-    proc = subprocess.run([sys.executable, "-m", "nvp.cli", "--help"], capture_output=True, text=True)
+    proc = subprocess.run([sys.executable, "-m", "nvp.app.cli", "--help"], capture_output=True, text=True)
     assert proc.returncode == 0 and "track" in proc.stdout

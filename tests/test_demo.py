@@ -1,4 +1,4 @@
-"""Tests for nvp.demo: the synthetic talking-head clip made from skimage's astronaut photo."""
+"""Tests for the demo (nvp.app.demo, demo_clip, demo_voice): the astronaut-photo talking clip."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from nvp import demo
+from nvp.app import demo, demo_clip, demo_voice
 from nvp.errors import NoFaceError
 from nvp.media import iter_frames, probe_video, read_audio
 
@@ -15,24 +15,24 @@ SECONDS, FPS, SIZE = 1.0, 25.0, 256
 
 
 @pytest.fixture(scope="module")
-def clip(tmp_path_factory: pytest.TempPathFactory) -> demo.DemoClip:
+def clip(tmp_path_factory: pytest.TempPathFactory) -> demo_clip.DemoClip:
     path = tmp_path_factory.mktemp("demo") / "clip.mp4"
-    return demo.make_demo_clip(path, seconds=SECONDS, fps=FPS, size=SIZE, seed=0)
+    return demo_clip.make_demo_clip(path, seconds=SECONDS, fps=FPS, size=SIZE, seed=0)
 
 
-def test_clip_file_has_the_promised_frames_duration_and_audio(clip: demo.DemoClip) -> None:
+def test_clip_file_has_the_promised_frames_duration_and_audio(clip: demo_clip.DemoClip) -> None:
     info = probe_video(clip.path)
     assert (info.width, info.height) == (SIZE, SIZE)
     assert info.num_frames == clip.num_frames == round(SECONDS * FPS)
     assert info.fps == pytest.approx(FPS)
     assert info.duration_s == pytest.approx(SECONDS, abs=0.5 / FPS)
-    assert info.has_audio and info.audio_sample_rate == demo.AUDIO_RATE
-    audio = read_audio(clip.path, demo.AUDIO_RATE)
-    assert len(audio) == pytest.approx(SECONDS * demo.AUDIO_RATE, abs=0.05 * demo.AUDIO_RATE)
+    assert info.has_audio and info.audio_sample_rate == demo_voice.AUDIO_RATE
+    audio = read_audio(clip.path, demo_voice.AUDIO_RATE)
+    assert len(audio) == pytest.approx(SECONDS * demo_voice.AUDIO_RATE, abs=0.05 * demo_voice.AUDIO_RATE)
     assert np.abs(audio).max() > 0.1  # the voice is audible
 
 
-def test_ground_truth_has_closed_and_open_frames(clip: demo.DemoClip) -> None:
+def test_ground_truth_has_closed_and_open_frames(clip: demo_clip.DemoClip) -> None:
     assert clip.mouth_opening.shape == clip.head_angle.shape == (clip.num_frames,)
     assert np.all(clip.mouth_opening >= 0)
     assert np.any(clip.mouth_opening < 0.5)  # closed (the clip starts with a pause)
@@ -40,9 +40,9 @@ def test_ground_truth_has_closed_and_open_frames(clip: demo.DemoClip) -> None:
     assert np.abs(clip.head_angle).max() < 6.0
 
 
-def test_audio_is_silent_while_the_mouth_is_closed(clip: demo.DemoClip) -> None:
-    audio = read_audio(clip.path, demo.AUDIO_RATE)
-    per_frame = round(demo.AUDIO_RATE / FPS)
+def test_audio_is_silent_while_the_mouth_is_closed(clip: demo_clip.DemoClip) -> None:
+    audio = read_audio(clip.path, demo_voice.AUDIO_RATE)
+    per_frame = round(demo_voice.AUDIO_RATE / FPS)
     frames = audio[: per_frame * clip.num_frames].reshape(clip.num_frames, per_frame)
     rms = np.sqrt((frames**2).mean(axis=1))
     closed = clip.mouth_opening < 1e-6
@@ -52,7 +52,7 @@ def test_audio_is_silent_while_the_mouth_is_closed(clip: demo.DemoClip) -> None:
     assert rms[strict].max() < 0.1 * rms[~closed].max()
 
 
-def test_mediapipe_sees_the_animated_mouth(clip: demo.DemoClip) -> None:
+def test_mediapipe_sees_the_animated_mouth(clip: demo_clip.DemoClip) -> None:
     from tracking.landmarks import LandmarkDetector
 
     gaps = []
@@ -67,9 +67,9 @@ def test_mediapipe_sees_the_animated_mouth(clip: demo.DemoClip) -> None:
 
 
 def test_opening_signal_is_deterministic_and_speech_like() -> None:
-    a = demo.speech_opening(6.0, 25.0, seed=3)
-    b = demo.speech_opening(6.0, 25.0, seed=3)
-    c = demo.speech_opening(6.0, 25.0, seed=4)
+    a = demo_voice.speech_opening(6.0, 25.0, seed=3)
+    b = demo_voice.speech_opening(6.0, 25.0, seed=3)
+    c = demo_voice.speech_opening(6.0, 25.0, seed=4)
     np.testing.assert_array_equal(a, b)
     assert not np.array_equal(a, c)
     assert a.shape == (150,) and a.min() >= 0 and a.max() <= 1
@@ -83,9 +83,9 @@ def test_opening_signal_is_deterministic_and_speech_like() -> None:
 
 def test_invalid_arguments(tmp_path: Path) -> None:
     with pytest.raises(ValueError):
-        demo.make_demo_clip(tmp_path / "x.mp4", seconds=0)
+        demo_clip.make_demo_clip(tmp_path / "x.mp4", seconds=0)
     with pytest.raises(ValueError):
-        demo.make_demo_clip(tmp_path / "x.mp4", size=16)
+        demo_clip.make_demo_clip(tmp_path / "x.mp4", size=16)
 
 
 def test_no_face_in_the_photo_raises(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -103,7 +103,7 @@ def test_no_face_in_the_photo_raises(tmp_path: Path, monkeypatch: pytest.MonkeyP
 
     monkeypatch.setattr(tracking.landmarks, "LandmarkDetector", Blind)
     with pytest.raises(NoFaceError):
-        demo.make_demo_clip(tmp_path / "x.mp4", seconds=0.2)
+        demo_clip.make_demo_clip(tmp_path / "x.mp4", seconds=0.2)
     assert not (tmp_path / "x.mp4").exists()
 
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from tracking.fit import FitConfig, FrameParams, solve_block_tridiagonal, temporal_differences
+from tracking.fit import FrameParams, TrackingConfig, solve_block_tridiagonal, temporal_differences
 from tracking.track import fit_detections
 
 
@@ -114,7 +114,7 @@ def test_config_fields_are_documented():
     import dataclasses
     import inspect
 
-    src = inspect.getsource(FitConfig)
-    for f in dataclasses.fields(FitConfig):
+    src = inspect.getsource(TrackingConfig)
+    for f in dataclasses.fields(TrackingConfig):
         assert f"{f.name}:" in src
-    assert src.count('"""') >= 2 * (len(dataclasses.fields(FitConfig)) + 1) - 1
+    assert src.count('"""') >= 2 * (len(dataclasses.fields(TrackingConfig)) + 1) - 1

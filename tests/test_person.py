@@ -10,10 +10,16 @@ import soundfile as sf
 import torch
 from test_cli import assert_one_line_error, nvp
 
-from nvp.audio2exp import Audio2ExpConfig, Audio2ExpressionNet, PersonMap
+from nvp.audio2exp import (
+    Audio2ExpConfig,
+    Audio2ExpressionNet,
+    PersonMap,
+    default_audio2exp,
+    load_net,
+    save_net,
+)
 from nvp.errors import FormatError
-from nvp.person import PersonStyle, default_audio2exp, predict_expressions
-from nvp.train_audio2exp import load_net, save_net
+from nvp.person import PersonStyle, predict_expressions
 
 K = 64
 
@@ -37,7 +43,7 @@ def test_person_style_round_trip(tmp_path):
 
 
 def test_person_style_rejects_bad_files(tmp_path):
-    with pytest.raises(FormatError, match="cannot read person map"):
+    with pytest.raises(FormatError, match="missing.json is missing"):
         PersonStyle.load(tmp_path / "missing.json")
     (tmp_path / "other.json").write_text(json.dumps({"format": "something else", "version": 1}))
     with pytest.raises(FormatError, match="expected nvp.person_map"):
@@ -66,8 +72,10 @@ def test_predict_expressions_has_one_row_per_video_frame(fps):
 def test_predict_expressions_in_blocks_equals_one_pass(monkeypatch):
     """Windows are made block by block (bounded memory); the result must equal the whole-file path."""
     from nvp import person
-    from nvp.audio_features import extract_features, frame_windows, speaker_normalized, voice_activity
-    from nvp.train_audio2exp import audio_expressions
+    from nvp.audio2exp import audio_expressions
+    from nvp.audio_features import extract_features, speaker_normalized
+    from nvp.vad import voice_activity
+    from nvp.windows import frame_windows
 
     torch.manual_seed(0)
     net = Audio2ExpressionNet(Audio2ExpConfig(feature_dim=80)).eval()

@@ -9,6 +9,7 @@ import pytest
 import soundfile as sf
 from test_cli import assert_one_line_error, nvp
 
+from nvp.bundle import BundleBuilder
 from nvp.media import probe_video, read_audio
 
 
@@ -90,8 +91,8 @@ def test_dub_errors_are_one_line(bundle, tmp_path):
 
 
 def test_fit_resumes_after_an_interruption(demo_clip, tmp_path, monkeypatch):
-    import nvp.pipeline as pipeline
     import tracking.track
+    from nvp.app import fit as pipeline
 
     def interrupted(*a, **k):
         raise KeyboardInterrupt
@@ -112,8 +113,8 @@ def test_fit_resumes_after_an_interruption(demo_clip, tmp_path, monkeypatch):
     bundle = pipeline.fit(demo_clip.path, tmp_path / "p", cfg, progress=False)
     assert bundle.root == tmp_path / "p" and (tmp_path / "p" / "bundle.json").exists()
     with pytest.raises(Exception, match="other settings"):
-        pipeline.BundleBuilder(tmp_path / "q", {"preset": "cpu"})
-        pipeline.BundleBuilder(tmp_path / "q", {"preset": "quality"})
+        BundleBuilder(tmp_path / "q", {"preset": "cpu"})
+        BundleBuilder(tmp_path / "q", {"preset": "quality"})
 
 
 def test_fit_needs_audio(tmp_path):

@@ -11,9 +11,18 @@ import torch
 
 from nvp.media import VideoWriter
 from renderer.crop import crop_boxes, crop_camera, cut, feather, paste, region_weight
-from renderer.data import Preset, build_cache, camera_vertices, face_region
-from renderer.networks import NeuralRenderer, NeuralTexture, UNet, UNetConfig, count_parameters, inner_weight
-from renderer.train import TrainConfig, load_renderer, train_renderer
+from renderer.data import build_cache, face_region
+from renderer.networks import (
+    NeuralRenderer,
+    NeuralTexture,
+    UNet,
+    UNetConfig,
+    count_parameters,
+    inner_weight,
+    load_renderer,
+)
+from renderer.preset import Preset
+from renderer.train import RendererTrainConfig, train_renderer
 from tracking.synthetic import synthetic_tracked
 
 TINY = Preset("tiny", crop=32, base=4, dilated=False, texture_size=32, steps=2, batch=2)
@@ -30,7 +39,7 @@ def footage(tmp_path_factory, face_model):
     path = tmp_path_factory.mktemp("footage") / "face.mp4"
     with GLRasterizer(SIZE, SIZE) as gl, VideoWriter(path, 25.0, SIZE, SIZE) as w:
         for i in range(t):
-            v = camera_vertices(face_model, seq, np.array([i]), seq.expression[i : i + 1])[0]
+            v = seq.camera_vertices(face_model, np.array([i]))[0]
             r = gl.rasterize(v, face_model.triangles, face_model.uvs, seq.focal, seq.center)
             img = np.full((SIZE, SIZE, 3), 90, np.uint8)
             col = torch.cat([r.uv, 1 - r.uv[..., :1]], -1).numpy() * 255
@@ -163,7 +172,7 @@ def test_training_resumes_exactly_and_renders(footage, face_model, tmp_path):
     assert cache.crops.shape == (10, 32, 32, 3) and cache.mask.mean() > 0.2
     assert cache.mouth.any() and (cache.region >= cache.mask).all()
     # a constant learning rate, so that stopping after 2 of 4 steps is the same as being interrupted there
-    cfg = TrainConfig(steps=4, checkpoint_every=2, preview_every=2, lr_final=1.0)
+    cfg = RendererTrainConfig(steps=4, checkpoint_every=2, preview_every=2, lr_final=1.0)
     full = train_renderer(cache, cfg, tmp_path / "a", progress=False, preset=TINY)
     part = replace(cfg, steps=2)
     train_renderer(cache, part, tmp_path / "b", progress=False, preset=TINY)
@@ -183,7 +192,7 @@ def test_training_resumes_exactly_and_renders(footage, face_model, tmp_path):
 
     frame = next(iter_frames(path, start_frame=11))
     with FrameRenderer(tmp_path / "a", face_model, seq) as fr:
-        v = camera_vertices(face_model, seq, np.array([11]), seq.expression[11:12])[0]
+        v = seq.camera_vertices(face_model, np.array([11]))[0]
         img = fr.render(frame, 11, v, original_cam=v)
     assert img.shape == frame.shape and img.dtype == np.uint8
     box = fr.boxes[11]
@@ -203,7 +212,7 @@ def test_load_renderer_rejects_other_files(tmp_path):
 def test_renderer_files_keep_the_region_they_were_trained_with(tmp_path):
     import json
 
-    from renderer.train import make_renderer, save_renderer
+    from renderer.networks import make_renderer, save_renderer
 
     save_renderer(make_renderer(TINY), tmp_path, TINY, {})
     net, preset, _ = load_renderer(tmp_path)
@@ -223,7 +232,7 @@ def test_renderer_files_keep_the_region_they_were_trained_with(tmp_path):
 def test_learning_rate_falls_from_lr_to_its_final_fraction():
     from renderer.train import learning_rate
 
-    cfg = TrainConfig(lr=1e-3, lr_final=0.05)
+    cfg = RendererTrainConfig(lr=1e-3, lr_final=0.05)
     lrs = [learning_rate(cfg, p) for p in np.linspace(-0.5, 1.5, 41)]
     assert lrs[0] == pytest.approx(1e-3) and lrs[10] == pytest.approx(1e-3)  # progress 0 (and before)
     assert lrs[30] == pytest.approx(5e-5) and lrs[-1] == pytest.approx(5e-5)  # progress 1 (and after)
@@ -268,7 +277,11 @@ def test_vgg_perceptual_term_from_a_user_weights_file(footage, face_model, tmp_p
     path, seq = footage
     cache = build_cache(path, seq, face_model, TINY, np.arange(4), progress=False)
     info = train_renderer(
-        cache, TrainConfig(steps=1, vgg_weights=str(weights)), tmp_path / "r", progress=False, preset=TINY
+        cache,
+        RendererTrainConfig(steps=1, vgg_weights=str(weights)),
+        tmp_path / "r",
+        progress=False,
+        preset=TINY,
     )
     assert info["steps"] == 1
     (tmp_path / "bad.pth").write_bytes(b"nope")
@@ -282,8 +295,8 @@ def test_training_and_rendering_on_cuda(footage, face_model, tmp_path):
 
     path, seq = footage
     cache = build_cache(path, seq, face_model, TINY, np.arange(4), progress=False)
-    train_renderer(cache, TrainConfig(steps=2), tmp_path, device="cuda", progress=False, preset=TINY)
-    v = camera_vertices(face_model, seq, np.array([0]), seq.expression[:1])[0]
+    train_renderer(cache, RendererTrainConfig(steps=2), tmp_path, device="cuda", progress=False, preset=TINY)
+    v = seq.camera_vertices(face_model, np.array([0]))[0]
     with FrameRenderer(tmp_path, face_model, seq, device="cuda") as fr:
         assert fr.render(np.zeros((SIZE, SIZE, 3), np.uint8), 0, v).shape == (SIZE, SIZE, 3)
 

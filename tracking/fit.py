@@ -27,7 +27,7 @@ from nvp.geometry import project, skew
 
 
 @dataclass(frozen=True)
-class FitConfig:
+class TrackingConfig:
     """Tracker fitting settings (all dimensionless unless stated)."""
 
     sigma: float = 0.01
@@ -181,7 +181,7 @@ def solve_frames(
     obs: torch.Tensor,
     weight: torch.Tensor,
     scale: float,
-    cfg: FitConfig,
+    cfg: TrackingConfig,
     iterations: int,
 ) -> FrameParams:
     """Independent Levenberg-Marquardt fits of every frame (batched, chunked); returns new parameters."""
@@ -258,7 +258,7 @@ def solve_sequence(
     obs: torch.Tensor,
     weight: torch.Tensor,
     scale: float,
-    cfg: FitConfig,
+    cfg: TrackingConfig,
     active: torch.Tensor,
 ) -> FrameParams:
     """One Gauss-Newton step of the whole sequence with the temporal term.
@@ -300,7 +300,7 @@ def fit_identity(
     obs: torch.Tensor,
     weight: torch.Tensor,
     scale: float,
-    cfg: FitConfig,
+    cfg: TrackingConfig,
 ) -> torch.Tensor:
     """Identity coefficients minimising the keyframes' energy with their pose and expression fixed.
 
@@ -336,16 +336,8 @@ def energy(
     obs: torch.Tensor,
     weight: torch.Tensor,
     scale: float,
-    cfg: FitConfig,
+    cfg: TrackingConfig,
 ) -> float:
     """Total data + prior energy of a set of frames (no temporal term)."""
     r = residuals(model, p, focal, center, obs) * (weight.sqrt()[..., None] / scale)
     return float((r**2).sum() + cfg.mu_exp * (p.expression**2).sum() + cfg.mu_id * (identity**2).sum())
-
-
-def projected_vertices(
-    vertices: np.ndarray, rotation: np.ndarray, translation: np.ndarray, focal: float, center: np.ndarray
-) -> np.ndarray:
-    """Pixels ``(T,V,2)`` of object-space vertices ``(T,V,3)`` under per-frame pose (numpy helper)."""
-    cam = np.einsum("tij,tvj->tvi", rotation, vertices) + translation[:, None]
-    return cam[..., :2] / np.maximum(cam[..., 2:3], 1e-6) * focal + center

@@ -8,9 +8,9 @@ import numpy as np
 from tqdm import tqdm
 
 from nvp.face_model import FaceModel, default_face_model
+from nvp.geometry import pinhole, posed
 from nvp.media import VideoWriter, iter_frames, probe_video, read_audio
 from nvp.tracked import TrackedSequence
-from tracking.fit import projected_vertices
 
 MESH = (200, 200, 200)
 LIPS = (255, 64, 64)
@@ -69,7 +69,7 @@ def write_preview(
     model = model or default_face_model()
     info = probe_video(video)
     verts = model.vertices(seq.identity, seq.expression)
-    uv = projected_vertices(verts, seq.rotation, seq.translation, seq.focal, seq.center)
+    uv = pinhole(posed(verts, seq.rotation, seq.translation), seq.focal, seq.center)
     edges = mesh_edges(model.triangles)
     audio = read_audio(video) if info.has_audio else None
     with VideoWriter(out, fps=seq.fps, width=seq.width, height=seq.height, audio=audio) as wr:

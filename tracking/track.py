@@ -13,17 +13,17 @@ import torch
 
 from nvp.errors import NoFaceError
 from nvp.face_model import FaceModel, default_face_model
+from nvp.geometry import pinhole, posed
 from nvp.metrics import interocular_distance
 from nvp.tracked import TrackedSequence
 from tracking.detect import Detections, detect_video
 from tracking.fit import (
-    FitConfig,
     FrameParams,
     ModelTensors,
+    TrackingConfig,
     energy,
     fit_identity,
     init_pose,
-    projected_vertices,
     solve_frames,
     solve_sequence,
 )
@@ -50,11 +50,11 @@ def _nearest_fill(values: np.ndarray, have: np.ndarray) -> np.ndarray:
 
 
 def fit_detections(
-    det: Detections, model: FaceModel | None = None, cfg: FitConfig | None = None
+    det: Detections, model: FaceModel | None = None, cfg: TrackingConfig | None = None
 ) -> TrackedSequence:
     """Fit the face model to a video's detections (see ``tracking.fit`` for the energy)."""
     model = model or default_face_model()
-    cfg = cfg or FitConfig()
+    cfg = cfg or TrackingConfig()
     t0 = time.perf_counter()
     torch.manual_seed(0)
     found = det.found.copy()
@@ -160,14 +160,14 @@ def _rms_error(
 ) -> np.ndarray:
     """``(T,)`` RMS pixel distance between projected landmark vertices and detections (NaN if missing)."""
     verts = model.vertices(identity, p.expression.numpy())[:, model.landmark_vertices]
-    uv = projected_vertices(verts, p.rotation.numpy(), p.translation.numpy(), focal, center)
+    uv = pinhole(posed(verts, p.rotation.numpy(), p.translation.numpy()), focal, center)
     return np.sqrt(((uv - obs) ** 2).sum(-1).mean(-1))
 
 
 def track_video(
     path: str | Path,
     *,
-    cfg: FitConfig | None = None,
+    cfg: TrackingConfig | None = None,
     model: FaceModel | None = None,
     progress: bool = True,
     max_frames: int | None = None,

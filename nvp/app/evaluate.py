@@ -86,16 +86,16 @@ def evaluate_video(
     video: str | Path, out_dir: str | Path, cfg: EvalConfig = EvalConfig(), progress: bool = True
 ) -> dict:
     """Run the protocol on ``video``; writes ``eval.json``, ``eval.md`` and ``eval.png`` into ``out_dir``."""
-    from tqdm import tqdm
-
+    from nvp.app.dub import dubbed_vertices
+    from nvp.app.fit import FitConfig, fit
+    from nvp.audio2exp import default_audio2exp
     from nvp.face_model import default_face_model
     from nvp.media import VideoWriter, audio_rate, iter_frames, probe_video, read_audio
     from nvp.metrics import psnr, ssim
-    from nvp.person import PersonStyle, default_audio2exp, predict_expressions
-    from nvp.pipeline import FitConfig, dubbed_vertices, fit
+    from nvp.person import PersonStyle, predict_expressions
     from nvp.tracked import TrackedSequence
     from renderer.crop import box_slices
-    from renderer.render import FrameRenderer
+    from renderer.render import FrameRenderer, render_frames
     from tracking.landmarks import LandmarkDetector
     from tracking.track import track_video
 
@@ -141,23 +141,20 @@ def evaluate_video(
     side = None
     if cfg.side_by_side:
         side = VideoWriter(out / "side_by_side.mp4", seq.fps, 3 * seq.width, seq.height)
-    bar = tqdm(total=n_test, desc="eval", unit="frame", disable=not progress)
-    t_render = 0.0
     weights = model.mouth_weights()
+
+    def spoken(j: int, t: int, tracked: np.ndarray) -> np.ndarray:
+        return dubbed_vertices(model, seq, t, expr_audio[j], weights, tracked)
+
+    t_render, t_other = time.perf_counter(), 0.0  # render time = loop time - measuring time
     try:
         with FrameRenderer(bundle.path("renderer"), model, seq) as fr:
-            for j, frame in enumerate(iter_frames(video, fps=seq.fps, start_frame=split, max_frames=n_test)):
-                t = split + j
-                tracked = fr.tracked(t)
-                t1 = time.perf_counter()
-                made = {
-                    "visual": fr.render(frame, t, tracked),
-                    "audio": fr.render(
-                        frame, t, dubbed_vertices(model, seq, t, expr_audio[j], weights, tracked), tracked
-                    ),
-                }
-                t_render += time.perf_counter() - t1
-                ys, xs = box_slices(fr.boxes[t], seq.height, seq.width)
+            frames = iter_frames(video, fps=seq.fps, start_frame=split, max_frames=n_test)
+            indices = np.arange(split, split + n_test)
+            variants = {"visual": None, "audio": spoken}
+            for j, (frame, made) in enumerate(render_frames(fr, frames, indices, variants, progress, "eval")):
+                t_measure = time.perf_counter()
+                ys, xs = box_slices(fr.boxes[split + j], seq.height, seq.width)
                 for k, m in made.items():
                     img[k][j] = [
                         psnr(frame, m),
@@ -171,7 +168,7 @@ def evaluate_video(
                         marks[k][j] = d.points[:, :2]
                 if side is not None:
                     side.write(np.hstack([frame, made["visual"], made["audio"]]))
-                bar.update(1)
+                t_other += time.perf_counter() - t_measure
         if side is not None:
             side.close()
     except BaseException:
@@ -181,7 +178,7 @@ def evaluate_video(
     finally:
         for d in detectors.values():
             d.close()
-        bar.close()
+    t_render = time.perf_counter() - t_render - t_other
 
     has = {k: np.isfinite(marks[k][:, 0, 0]) for k in kinds}
     result = {

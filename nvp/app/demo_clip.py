@@ -22,15 +22,11 @@ from pathlib import Path
 
 import numpy as np
 
-from nvp.errors import MediaError, NoFaceError
+from nvp.app.demo_voice import AUDIO_RATE, smoothstep, speech_script, synth_voice
+from nvp.errors import NoFaceError
 from nvp.provenance import synthetic_mark
 
 log = logging.getLogger(__name__)
-
-__all__ = ["AUDIO_RATE", "DemoClip", "make_demo_clip", "run_demo", "speech_opening"]
-
-AUDIO_RATE = 16000
-"""Sample rate of the demo clip's audio, Hz."""
 
 # mediapipe face-mesh landmark indices
 UPPER_INNER_LIP = (78, 191, 80, 81, 82, 13, 312, 311, 310, 415, 308)
@@ -77,133 +73,6 @@ class DemoClip:
     head_angle: np.ndarray
 
 
-# ------------------------------------------------------------------------------------------- signals
-
-
-def _smoothstep(x: np.ndarray) -> np.ndarray:
-    x = np.clip(x, 0.0, 1.0)
-    return x * x * (3.0 - 2.0 * x)
-
-
-@dataclass(frozen=True)
-class _Speech:
-    """Continuous mouth-opening signal as knots of a monotone cubic (values in [0, 1])."""
-
-    times: np.ndarray
-    values: np.ndarray
-    pitch_offsets: np.ndarray  # per knot: relative intonation (for the voice), ~[-1, 1]
-    vowel: np.ndarray  # per knot: second-formant position in [0, 1] (front/back vowel)
-
-    def __call__(self, t: np.ndarray) -> np.ndarray:
-        from scipy.interpolate import PchipInterpolator
-
-        v = PchipInterpolator(self.times, self.values, extrapolate=False)(np.asarray(t, float))
-        return np.clip(np.nan_to_num(v, nan=0.0), 0.0, 1.0)
-
-    def knot_signal(self, values: np.ndarray, t: np.ndarray) -> np.ndarray:
-        """Another per-knot quantity, interpolated smoothly the same way."""
-        from scipy.interpolate import PchipInterpolator
-
-        return PchipInterpolator(self.times, values, extrapolate=True)(
-            np.clip(t, self.times[0], self.times[-1])
-        )
-
-
-def _speech(seconds: float, rng: np.random.Generator) -> _Speech:
-    """Random phrases of syllables (3–6 syllables/s) separated by closed-mouth pauses.
-
-    Every clip starts with a short pause. Each syllable opens the mouth to a random amplitude; between
-    syllables the mouth nearly or fully closes (bilabial consonants close it completely).
-    """
-    times = [0.0]
-    values = [0.0]
-    t = float(rng.uniform(0.25, 0.45))  # initial pause
-    end = seconds + 0.5
-    while t < end:
-        times.append(t)
-        values.append(0.0)
-        phrase_end = t + rng.uniform(0.9, 2.2)
-        while t < phrase_end:
-            dur = 1.0 / rng.uniform(3.0, 6.0)
-            amp = rng.uniform(0.3, 1.0)
-            times.append(t + dur * rng.uniform(0.4, 0.6))
-            values.append(amp)
-            t += dur
-            closed = rng.random() < 0.3
-            times.append(t)
-            values.append(0.0 if closed else amp * rng.uniform(0.05, 0.35))
-        values[-1] = 0.0  # phrase ends closed
-        t += rng.uniform(0.25, 0.7)  # pause
-    times_arr = np.asarray(times)
-    n = len(times_arr)
-    return _Speech(
-        times=times_arr,
-        values=np.asarray(values),
-        pitch_offsets=rng.uniform(-1.0, 1.0, n),
-        vowel=rng.uniform(0.0, 1.0, n),
-    )
-
-
-def speech_opening(seconds: float, fps: float, seed: int = 0) -> np.ndarray:
-    """The normalised mouth-opening signal (``[0, 1]``) of the demo clip, sampled at ``fps`` frames/s."""
-    s = _speech(seconds, np.random.default_rng(seed))
-    return s(np.arange(round(seconds * fps)) / fps)
-
-
-def _resonator(x: np.ndarray, freq: np.ndarray, bw: float, rate: int, block: int) -> np.ndarray:
-    """Second-order resonator (unit gain at DC) with a centre frequency that changes every ``block``
-    samples; the filter state is carried across blocks."""
-    from scipy.signal import lfilter
-
-    out = np.empty_like(x)
-    zi = np.zeros(2)
-    r = np.exp(-np.pi * bw / rate)
-    for start in range(0, len(x), block):
-        f = float(freq[start])
-        c = 2.0 * r * np.cos(2.0 * np.pi * f / rate)
-        a = [1.0, -c, r * r]
-        b = [1.0 - c + r * r]
-        out[start : start + block], zi = lfilter(b, a, x[start : start + block], zi=zi)
-    return out
-
-
-def _synth_voice(
-    speech: _Speech, seconds: float, rng: np.random.Generator, rate: int = AUDIO_RATE
-) -> np.ndarray:
-    """A voiced, vowel-like sound whose loudness follows the mouth opening (silent when it is closed).
-
-    A Rosenberg glottal pulse train around 120 Hz (intonation + jitter) is differentiated (lip radiation)
-    and passed through three formant resonators; the first formant rises with the opening, the second
-    moves between back and front vowels. Returns float32 mono in [-1, 1], ``round(seconds * rate)`` samples.
-    """
-    n = round(seconds * rate)
-    t = np.arange(n) / rate
-    opening = speech(t)
-    pitch = speech.knot_signal(speech.pitch_offsets, t)
-    f0 = 120.0 * (1.0 + 0.06 * pitch + 0.05 * opening) * (1.0 + 0.004 * rng.standard_normal(n))
-    phase = np.cumsum(f0 / rate) % 1.0
-    open_q, close_q = 0.4, 0.16  # Rosenberg pulse: opening and closing phase fractions
-    flow = np.where(
-        phase < open_q,
-        0.5 * (1.0 - np.cos(np.pi * phase / open_q)),
-        np.where(phase < open_q + close_q, np.cos(0.5 * np.pi * (phase - open_q) / close_q), 0.0),
-    )
-    source = np.diff(flow, prepend=0.0) + 0.002 * rng.standard_normal(n)  # + a little aspiration
-    f1 = 300.0 + 500.0 * opening
-    f2 = 900.0 + 1300.0 * np.clip(speech.knot_signal(speech.vowel, t), 0.0, 1.0)
-    f3 = np.full(n, 2600.0)
-    block = rate // 200
-    y = source
-    for freq, bw in ((f1, 90.0), (f2, 110.0), (f3, 160.0)):
-        y = _resonator(y, freq, bw, rate, block)
-    envelope = np.clip(opening / 0.15, 0.0, 1.0) ** 0.8 * (0.4 + 0.6 * opening)
-    y = y * envelope
-    peak = float(np.max(np.abs(y))) if n else 0.0
-    if peak > 0:
-        y = y * (0.7 / peak)
-    return y.astype(np.float32)
-
-
 def _head_motion(num_frames: int, fps: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """Slow in-plane rotation (degrees, within about ±4) and translation (pixels at 384, within about ±5)."""
     t = np.arange(num_frames) / fps
@@ -227,7 +96,7 @@ def _blinks(num_frames: int, fps: float, rng: np.random.Generator) -> np.ndarray
         close_s, open_s = 0.08, 0.16
         rising = (t - start) / close_s
         falling = 1.0 - (t - start - close_s) / open_s
-        shape = np.where(t < start + close_s, _smoothstep(rising), _smoothstep(falling))
+        shape = np.where(t < start + close_s, smoothstep(rising), smoothstep(falling))
         closure = np.maximum(closure, np.where(t >= start, shape, 0.0))
         start += rng.uniform(2.0, 4.5)
     return closure
@@ -328,8 +197,8 @@ class _Rig:
         ym, lm, jm, linem = y[moving], lip[moving], jaw[moving], lip_line[moving]
         gm = ym.copy()
         for _ in range(6):
-            beta = _smoothstep((gm - linem) / reach)
-            fade = 1.0 - _smoothstep((gm - fade0) / (fade1 - fade0))
+            beta = smoothstep((gm - linem) / reach)
+            fade = 1.0 - smoothstep((gm - fade0) / (fade1 - fade0))
             gm = ym - (lm + (jm - lm) * beta) * fade
         g[moving] = gm
         return g, lip
@@ -411,11 +280,11 @@ class _Rig:
         cavity = np.array([72.0, 18.0, 16.0])
         tongue = np.array([168.0, 72.0, 66.0])
         # shadow under the teeth -> dark cavity -> tongue near the lower lip (more visible when wide open)
-        w_cav = _smoothstep((v - 0.05) / 0.45)[:, None]
-        w_tongue = (_smoothstep((v - 0.55) / 0.45) * (0.3 + 0.5 * open_frac))[:, None]
+        w_cav = smoothstep((v - 0.05) / 0.45)[:, None]
+        w_tongue = (smoothstep((v - 0.55) / 0.45) * (0.3 + 0.5 * open_frac))[:, None]
         color = shadow + (cavity - shadow) * w_cav
         color = color + (tongue - color) * w_tongue
-        color = color * (1.0 - 0.6 * _smoothstep((u - 0.55) / 0.45))[:, None]  # corners in shadow
+        color = color * (1.0 - 0.6 * smoothstep((u - 0.55) / 0.45))[:, None]  # corners in shadow
         idx = roi[sel]
         old = pixels[idx].astype(np.float64)
         pixels[idx] = np.clip(old + (color - old) * a[:, None] + 0.5, 0, 255).astype(np.uint8)
@@ -507,12 +376,12 @@ def make_demo_clip(
     t0 = time.perf_counter()
     rig = _photo_rig(int(size))
     rng = np.random.default_rng(seed)
-    speech = _speech(num_frames / fps, rng)
+    speech = speech_script(num_frames / fps, rng)
     opening = speech(np.arange(num_frames) / fps) * rig.max_opening
     angle, shift = _head_motion(num_frames, fps, rng)
     shift = shift * (size / 384.0)
     blink = _blinks(num_frames, fps, rng)
-    audio = _synth_voice(speech, num_frames / fps, rng)
+    audio = synth_voice(speech, num_frames / fps, rng)
 
     path = Path(path)
     with VideoWriter(
@@ -542,111 +411,3 @@ def make_demo_clip(
         mouth_opening=opening.astype(np.float64),
         head_angle=angle.astype(np.float64),
     )
-
-
-def _write_png(path: Path, rgb: np.ndarray) -> None:
-    import cv2
-
-    if not cv2.imwrite(str(path), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
-        raise MediaError(f"cannot write image '{path}'")
-
-
-def _label(rgb: np.ndarray, text: str) -> np.ndarray:
-    """White caption on a dark band at the top of a copy of the frame."""
-    import cv2
-
-    out = rgb.copy()
-    scale = max(out.shape[0] / 800.0, 0.35)
-    (_, h), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
-    band = h + base + 8
-    out[:band] = (out[:band] * 0.35).astype(np.uint8)
-    cv2.putText(out, text, (6, 4 + h), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), 1, cv2.LINE_AA)
-    return out
-
-
-DEMO_TEXT = (
-    "Hello! I am a photograph that learned to talk. Everything you see was made on this computer, "
-    "from a picture and a few words, without any network."
-)
-
-
-def _demo_speech(text: str | None, seconds: float) -> tuple[np.ndarray, int, str]:
-    """What the demo person says: ``text`` with piper text to speech when it is installed, else ``seconds``
-    of a synthetic voice."""
-    from nvp.errors import NvpError
-    from nvp.tts import synthesize
-
-    if text:
-        try:
-            audio, rate = synthesize(text)
-            return audio, rate, f"text to speech (piper): {text!r}"
-        except NvpError as e:
-            log.warning("%s; the demo speaks with a synthetic voice instead", e)
-    rng = np.random.default_rng(1)
-    return _synth_voice(_speech(seconds, rng), seconds, rng), AUDIO_RATE, "synthetic voice (no TTS installed)"
-
-
-def _dub_stills(result, out_dir: Path) -> Path:
-    """One PNG with three dubbed frames: the widest predicted mouth, a closed one and one in between."""
-    from nvp.face_model import default_face_model
-    from nvp.media import iter_frames
-
-    model = default_face_model()
-    gap = model.inner_lip_gap(np.zeros(model.num_id, np.float32), result.expression)
-    picks = [int(np.argmax(gap)), int(np.argsort(gap)[len(gap) // 2]), int(np.argmin(gap))]
-    frames = {}
-    for i, frame in enumerate(iter_frames(result.output, max_frames=max(picks) + 1)):
-        if i in picks:
-            frames[i] = _label(frame, f"dub frame {i}: predicted opening {10 * gap[i]:.1f} mm")
-    path = out_dir / "demo_dub_stills.png"
-    _write_png(path, np.hstack([frames[i] for i in picks if i in frames]))
-    return path
-
-
-def run_demo(
-    out_dir: str | Path,
-    progress: bool = True,
-    budget_minutes: float = 8.0,
-    seconds: float = 20.0,
-    text: str | None = DEMO_TEXT,
-) -> str:
-    """The shipped default: make a talking target from the astronaut photo, fit it, dub it.
-
-    Writes ``demo_target.mp4`` (a ``seconds`` long synthetic clip), ``person/`` (the person bundle;
-    renderer trained for ``budget_minutes`` with the cpu preset), ``demo_speech.wav`` and ``demo_dub.mp4``
-    (the person saying ``text`` with piper text to speech when the ``tts`` extra is installed, a synthetic
-    voice otherwise) and ``demo_dub_stills.png``.
-
-    Returns:
-        A short multi-line summary: where the files are and how long each step took.
-    """
-    from nvp.pipeline import FitConfig, dub, fit
-    from nvp.provenance import verify
-
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    t0 = time.perf_counter()
-    target = out / "demo_target.mp4"
-    clip = make_demo_clip(target, seconds=seconds, size=256) if not target.exists() else None
-    t_clip = time.perf_counter() - t0
-    bundle = fit(target, out / "person", FitConfig(preset="cpu", budget_minutes=budget_minutes), progress)
-    t_fit = time.perf_counter() - t0 - t_clip
-    import soundfile as sf
-
-    audio, rate, what = _demo_speech(text, min(seconds, 8.0))
-    sf.write(out / "demo_speech.wav", audio, rate)
-    result = dub(out / "demo_speech.wav", bundle.root, out / "demo_dub.mp4", progress=progress)
-    stills = _dub_stills(result, out)
-    marked = verify(result.output).marked
-    elapsed = time.perf_counter() - t0
-    lines = [
-        f"demo target: {target} (synthetic from skimage.data.astronaut"
-        + (f", {clip.num_frames} frames, made in {t_clip:.0f} s)" if clip else ", reused)"),
-        f"person:      {bundle.root} (fit in {t_fit / 60:.1f} min; nvp info {bundle.root})",
-        f"speech:      {what}",
-        f"dubbed:      {result.output} ({result.frames} frames for {result.audio_seconds:.1f} s of audio, "
-        f"{result.frames / result.seconds:.1f} frames/s; synthetic-media mark: {'yes' if marked else 'NO'})",
-        f"stills:      {stills}",
-        f"total time:  {elapsed / 60:.1f} min",
-    ]
-    return "\n".join(lines)

@@ -11,7 +11,6 @@ first part of their video, predict the rest from audio alone, compare with track
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import os
@@ -23,19 +22,25 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from nvp.audio2exp import Audio2ExpConfig, Audio2ExpressionNet, VertexMetric, solve_person_map
-from nvp.corpus import VideoSample
-from nvp.errors import FormatError
+from nvp.audio2exp import (
+    Audio2ExpConfig,
+    Audio2ExpressionNet,
+    VertexMetric,
+    audio_expressions,
+    save_net,
+    solve_person_map,
+)
 from nvp.face_model import FaceModel
-from nvp.geometry import project
+from nvp.geometry import posed
 from nvp.metrics import closure_f1, interocular_distance
+from nvp.person import VideoSample, rest_expression
 
 log = logging.getLogger(__name__)
 FORMAT_VERSION = 1
 
 
 @dataclass(frozen=True)
-class TrainConfig:
+class Audio2ExpTrainConfig:
     """Corpus training settings."""
 
     kind: str = "phonemes"
@@ -83,13 +88,6 @@ def _predict_triplets(net: Audio2ExpressionNet, windows: torch.Tensor) -> torch.
     return torch.stack(outs, 1)
 
 
-def audio_expressions(net: Audio2ExpressionNet, windows: np.ndarray, use_filter: bool = True) -> np.ndarray:
-    """Generic-net outputs ``(T, A)`` for feature windows ``(T, W, D)``."""
-    net.eval()
-    with torch.no_grad():
-        return net.sequence(torch.from_numpy(windows), use_filter=use_filter).numpy()
-
-
 def evaluate_person(
     sample: VideoSample,
     model: FaceModel,
@@ -111,8 +109,6 @@ def evaluate_person(
     (closed: inner-lip gap below the person's closed level, ``min + 0.15 (p95 - min)`` of the tracked gap
     on the training part).
     """
-    from nvp.person import rest_expression
-
     seq = sample.tracked
     t_split = int(round(seq.num_frames * train_fraction))
     tr = np.flatnonzero(seq.valid[:t_split])
@@ -134,8 +130,7 @@ def evaluate_person(
     lip_mm = 10 * np.linalg.norm(v_pred[:, lips] - v_true[:, lips], axis=-1).mean()
 
     def px(v):
-        cam = np.einsum("tij,tvj->tvi", seq.rotation[te], v) + seq.translation[te, None]
-        return project(torch.from_numpy(cam), torch.tensor(seq.focal), torch.from_numpy(seq.center)).numpy()
+        return seq.pixels(posed(v, seq.rotation[te], seq.translation[te]))
 
     g = model.landmark_groups
     iod = interocular_distance(seq.landmarks[te], g["left_eye"], g["right_eye"])
@@ -158,58 +153,11 @@ def _summary(rows: list[dict[str, float]]) -> dict[str, float]:
     return {k: float(np.mean([r[k] for r in rows])) for k in keys}
 
 
-def save_net(net: Audio2ExpressionNet, out: Path, manifest: dict) -> Path:
-    """Write ``<out>.npz`` (weights) and ``<out>.json`` (format, config, provenance); atomic per file."""
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    arrays = {k: v.detach().numpy() for k, v in net.state_dict().items()}
-    tmp = out.with_name(f".{out.name}.tmp.npz")
-    np.savez(tmp, **arrays)
-    os.replace(tmp, out.with_suffix(".npz"))
-    manifest = {
-        "format": "nvp.audio2exp",
-        "version": FORMAT_VERSION,
-        "weights": out.with_suffix(".npz").name,
-        "net": asdict(net.cfg),
-        **manifest,
-    }
-    tmpj = out.with_name(f".{out.name}.tmp.json")
-    tmpj.write_text(json.dumps(manifest, indent=2) + "\n")
-    os.replace(tmpj, out.with_suffix(".json"))
-    return out.with_suffix(".json")
-
-
-def load_net(path: Path) -> tuple[Audio2ExpressionNet, dict]:
-    """Load a saved network from its ``.json`` manifest (or ``.npz``)."""
-    js = Path(path).with_suffix(".json")
-    try:
-        m = json.loads(js.read_text())
-    except (OSError, ValueError) as e:
-        raise FormatError(f"cannot read Audio2Expression manifest {js}: {e}") from e
-    if m.get("format") != "nvp.audio2exp" or m.get("version") != FORMAT_VERSION:
-        raise FormatError(
-            f"{js}: expected nvp.audio2exp version {FORMAT_VERSION}, found {m.get('format')} "
-            f"version {m.get('version')}"
-        )
-    cfg = m["net"]
-    cfg["conv_channels"] = tuple(cfg["conv_channels"])
-    net = Audio2ExpressionNet(Audio2ExpConfig(**cfg))
-    weights = js.parent / m["weights"]
-    try:
-        with np.load(weights) as z:
-            net.load_state_dict({k: torch.from_numpy(z[k]) for k in z.files})
-    except (OSError, ValueError, RuntimeError) as e:
-        raise FormatError(f"cannot load Audio2Expression weights {weights}: {e}") from e
-    m["sha256"] = hashlib.sha256(weights.read_bytes()).hexdigest()
-    net.eval()
-    return net, m
-
-
 def train(
     train_set: list[VideoSample],
     val_set: list[VideoSample],
     model: FaceModel,
-    cfg: TrainConfig,
+    cfg: Audio2ExpTrainConfig,
     out_dir: Path,
     progress: bool = True,
     provenance: dict | None = None,

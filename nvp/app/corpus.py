@@ -7,39 +7,16 @@ evaluation only processes new videos.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from nvp.errors import FormatError
 from nvp.face_model import default_face_model
+from nvp.person import VideoSample
 from nvp.tracked import TrackedSequence
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class VideoSample:
-    """One talking-head video ready for training or evaluation.
-
-    Attributes:
-        name: file name of the video.
-        windows: ``(T, W, D)`` float32 speech-feature windows, one per video frame.
-        tracked: the video's ``TrackedSequence`` (``T`` frames; expressions are the regression target).
-    """
-
-    name: str
-    windows: np.ndarray
-    tracked: TrackedSequence
-
-    @property
-    def expression(self) -> np.ndarray:
-        return self.tracked.expression
-
-    @property
-    def valid(self) -> np.ndarray:
-        return self.tracked.valid
 
 
 def tracked_cached(video: Path, cache: Path, progress: bool = True) -> TrackedSequence:
@@ -62,7 +39,8 @@ def tracked_cached(video: Path, cache: Path, progress: bool = True) -> TrackedSe
 
 def features_cached(video: Path, cache: Path, kind: str, fps: float, num_frames: int) -> np.ndarray:
     """Feature windows ``(T, W, D)`` of the video's audio track, kept in ``cache/features``."""
-    from nvp.audio_features import features_from_file, frame_windows, speaker_normalized
+    from nvp.audio_features import features_from_file, speaker_normalized
+    from nvp.windows import frame_windows
 
     path = cache / "features" / f"{video.stem}_{kind}_{fps:.3f}_{num_frames}_sn.npy"
     if path.exists():

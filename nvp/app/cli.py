@@ -13,11 +13,11 @@ VIDEO_SUFFIXES = (".mp4", ".mov", ".mkv", ".avi", ".webm", ".m4v")
 
 
 def _cmd_track(args: argparse.Namespace) -> int:
-    from tracking.fit import FitConfig
+    from tracking.fit import TrackingConfig
     from tracking.preview import write_preview
     from tracking.track import track_video
 
-    seq, det = track_video(args.video, progress=not args.quiet, cfg=FitConfig())
+    seq, det = track_video(args.video, progress=not args.quiet, cfg=TrackingConfig())
     out = seq.save(args.output)
     if args.save_detections:
         det.save(Path(args.output) / "detections.npz")
@@ -33,10 +33,10 @@ def _cmd_track(args: argparse.Namespace) -> int:
 
 
 def _cmd_train_audio2exp(args: argparse.Namespace) -> int:
-    from nvp.corpus import load_sample
+    from nvp.app.corpus import load_sample
+    from nvp.app.train_audio2exp import Audio2ExpTrainConfig, train
     from nvp.errors import NvpError
     from nvp.face_model import default_face_model
-    from nvp.train_audio2exp import TrainConfig, train
 
     videos = sorted(p for p in Path(args.corpus).iterdir() if p.suffix.lower() in VIDEO_SUFFIXES)
     if not videos:
@@ -59,7 +59,7 @@ def _cmd_train_audio2exp(args: argparse.Namespace) -> int:
             print(f"skipping {v.name}: {e}", file=sys.stderr)
     train_set = [s for s in samples if s.name not in val_names]
     val_set = [s for s in samples if s.name in val_names]
-    cfg = TrainConfig(kind=args.features, steps=args.steps, seed=args.seed, val_every=args.val_every)
+    cfg = Audio2ExpTrainConfig(kind=args.features, steps=args.steps, seed=args.seed, val_every=args.val_every)
     split = {
         "train": [s.name for s in train_set],
         "validation": [s.name for s in val_set],
@@ -83,9 +83,10 @@ def _cmd_train_audio2exp(args: argparse.Namespace) -> int:
 
 
 def _cmd_person_map(args: argparse.Namespace) -> int:
-    from nvp.corpus import load_sample
+    from nvp.app.corpus import load_sample
+    from nvp.audio2exp import default_audio2exp
     from nvp.face_model import default_face_model
-    from nvp.person import default_audio2exp, style_from_sample
+    from nvp.person import style_from_sample
 
     net, manifest = default_audio2exp(args.features)
     cache = Path(args.cache) if args.cache else Path(args.output).parent / ".nvp-cache"
@@ -98,10 +99,11 @@ def _cmd_person_map(args: argparse.Namespace) -> int:
 def _cmd_predict(args: argparse.Namespace) -> int:
     import numpy as np
 
+    from nvp.audio2exp import default_audio2exp
     from nvp.errors import NvpError
     from nvp.face_model import default_face_model
     from nvp.media import read_audio
-    from nvp.person import PersonStyle, default_audio2exp, predict_expressions
+    from nvp.person import PersonStyle, predict_expressions
 
     style = PersonStyle.load(Path(args.style))
     net, manifest = default_audio2exp(style.feature_kind)
@@ -132,8 +134,9 @@ def _cmd_train_renderer(args: argparse.Namespace) -> int:
     from nvp.face_model import default_face_model
     from nvp.media import probe_video
     from nvp.tracked import TrackedSequence
-    from renderer.data import build_cache, get_preset
-    from renderer.train import TrainConfig, train_renderer
+    from renderer.data import build_cache
+    from renderer.preset import get_preset
+    from renderer.train import RendererTrainConfig, train_renderer
 
     seq = TrackedSequence.load(args.track_dir)
     info = probe_video(args.video)
@@ -147,7 +150,9 @@ def _cmd_train_renderer(args: argparse.Namespace) -> int:
     cache = build_cache(args.video, seq, default_face_model(), preset, np.arange(split), not args.quiet)
     budget = None if args.budget_minutes is None else args.budget_minutes * 60
     vgg = str(args.vgg_weights) if args.vgg_weights else None
-    cfg = TrainConfig(preset=args.preset, steps=args.steps, budget_s=budget, seed=args.seed, vgg_weights=vgg)
+    cfg = RendererTrainConfig(
+        preset=args.preset, steps=args.steps, budget_s=budget, seed=args.seed, vgg_weights=vgg
+    )
     result = train_renderer(cache, cfg, Path(args.output), device=args.device, progress=not args.quiet)
     print(
         f"trained the {args.preset} renderer on {result['train_frames']} frames: {result['steps']} steps in "
@@ -157,16 +162,15 @@ def _cmd_train_renderer(args: argparse.Namespace) -> int:
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
+    import numpy as np
 
     from nvp.face_model import default_face_model
     from nvp.media import VideoWriter, audio_rate, has_audio, iter_frames, read_audio
     from nvp.provenance import synthetic_mark
     from nvp.tracked import TrackedSequence
-    from renderer.render import FrameRenderer
+    from renderer.render import FrameRenderer, render_frames
 
     seq = TrackedSequence.load(args.track_dir)
-    model = default_face_model()
     start = args.start_frame
     n = seq.num_frames - start if args.frames is None else min(args.frames, seq.num_frames - start)
     audio, rate = None, 48000
@@ -174,23 +178,21 @@ def _cmd_render(args: argparse.Namespace) -> int:
         rate = audio_rate(args.video)
         audio = read_audio(args.video, None, mono=False)[int(start / seq.fps * rate) :]
     tags = synthetic_mark("render", renderer=str(args.renderer_dir))
-    bar = tqdm(total=n, desc="render", unit="frame", disable=args.quiet)
     with (
-        FrameRenderer(args.renderer_dir, model, seq, args.device) as fr,
+        FrameRenderer(args.renderer_dir, default_face_model(), seq, args.device) as fr,
         VideoWriter(args.output, seq.fps, seq.width, seq.height, audio, rate, metadata=tags) as vw,
     ):
-        for t, frame in zip(
-            range(start, start + n), iter_frames(args.video, seq.fps, start, n), strict=False
+        frames = iter_frames(args.video, seq.fps, start, n)
+        for _, made in render_frames(
+            fr, frames, np.arange(start, start + n), {"render": None}, not args.quiet
         ):
-            vw.write(fr.render(frame, t, fr.tracked(t)))
-            bar.update(1)
-    bar.close()
+            vw.write(made["render"])
     print(f"rendered {n} frames → {args.output}")
     return 0
 
 
 def _cmd_fit(args: argparse.Namespace) -> int:
-    from nvp.pipeline import FitConfig, fit
+    from nvp.app.fit import FitConfig, fit
 
     cfg = FitConfig(
         preset=args.preset,
@@ -208,7 +210,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
 
 
 def _cmd_dub(args: argparse.Namespace) -> int:
-    from nvp.pipeline import dub
+    from nvp.app.dub import dub
 
     r = dub(args.audio, args.person, args.output, device=args.device, progress=not args.quiet)
     print(
@@ -266,9 +268,9 @@ SUMMARY_METRICS = (
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
+    from nvp.app.evaluate import EvalConfig, evaluate_video
+    from nvp.app.report import write_results
     from nvp.errors import NvpError
-    from nvp.evaluate import EvalConfig, evaluate_video
-    from nvp.report import write_results
 
     cfg = EvalConfig(
         train_fraction=args.train_fraction,
@@ -311,7 +313,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from nvp.demo import run_demo
+    from nvp.app.demo import run_demo
 
     result = run_demo(Path(args.output), progress=not args.quiet, budget_minutes=args.budget_minutes)
     print(result)

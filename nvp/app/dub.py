@@ -1,0 +1,113 @@
+"""``nvp dub``: make a fitted person say new audio.
+
+audio → expressions of the person (``nvp.person.predict_expressions``) → target frames played forward then
+backward as long as the audio lasts (head pose, eyes and blinks from the footage) → mouth from the audio
+→ neural rendering composited into the footage (``renderer.render.render_frames``) → mp4 with the input
+audio, marked as synthetic.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from nvp.bundle import PersonBundle
+from nvp.errors import NvpError
+from nvp.face_model import FaceModel
+from nvp.geometry import posed
+from nvp.tracked import TrackedSequence
+
+
+def dubbed_vertices(
+    model: FaceModel,
+    seq: TrackedSequence,
+    target_index: int,
+    expression: np.ndarray,
+    weights: np.ndarray,
+    tracked_cam: np.ndarray,
+) -> np.ndarray:
+    """``(V, 3)`` camera-frame vertices of a dubbed frame: pose, eyes and brows of target frame
+    ``target_index`` (``tracked_cam``, its tracked camera-frame vertices, which the caller renders anyway),
+    mouth and jaw of ``expression`` ``(K_exp,)``, blended per vertex by ``weights`` ``(V,)``
+    (``model.mouth_weights()``, computed once per video). The pose is rigid, so blending in camera space
+    equals blending in model space and posing."""
+    w = weights[:, None]
+    k = target_index
+    spoken = posed(model.vertices(seq.identity, expression), seq.rotation[k], seq.translation[k])
+    return (1 - w) * tracked_cam + w * spoken
+
+
+@dataclass(frozen=True)
+class DubResult:
+    """What ``dub`` wrote and measured."""
+
+    output: Path
+    frames: int
+    fps: float
+    audio_seconds: float
+    seconds: float
+    target_frames: np.ndarray
+    """``(T,)`` index of the target frame behind each output frame."""
+    expression: np.ndarray
+    """``(T, K_exp)`` expressions predicted from the audio."""
+
+
+def dub(
+    audio_path: str | Path,
+    bundle_dir: str | Path,
+    output: str | Path,
+    device: str = "cpu",
+    progress: bool = True,
+) -> DubResult:
+    """Make the person of ``bundle_dir`` say ``audio_path``; writes an mp4 as long as the audio (±1 frame),
+    with the input audio at its own sample rate and channels."""
+    from nvp.audio2exp import default_audio2exp
+    from nvp.face_model import default_face_model
+    from nvp.media import VideoWriter, audio_rate, frames_at, read_audio
+    from nvp.person import PersonStyle, predict_expressions
+    from nvp.provenance import synthetic_mark
+    from nvp.schedule import target_frame_indices
+    from nvp.vad import speech_activity
+    from nvp.windows import num_video_frames
+    from renderer.render import FrameRenderer, render_frames
+
+    t_start = time.perf_counter()
+    bundle = PersonBundle.load(bundle_dir)
+    rate = audio_rate(audio_path)
+    original = read_audio(audio_path, None, mono=False)
+    mono = original if original.ndim == 1 else original.mean(1)
+    if len(mono) == 0 or not speech_activity(mono, rate):
+        raise NvpError(f"{audio_path}: no speech found (the audio is silent or too quiet)")
+    style = PersonStyle.load(bundle.path("style"))
+    net, manifest = default_audio2exp(style.feature_kind)
+    if manifest["sha256"] != style.audio2exp_sha256:
+        raise NvpError(f"{bundle.root} was made with another Audio2ExpressionNet; run nvp fit again")
+    seq = TrackedSequence.load(bundle.path("tracked"))
+    model = default_face_model()
+    duration = len(mono) / rate
+    n_out = num_video_frames(duration, seq.fps)
+    expression = predict_expressions(mono, rate, seq.fps, style, net, num_frames=n_out)
+    order = target_frame_indices(n_out, seq.num_frames)
+    weights = model.mouth_weights()
+
+    def spoken(j: int, k: int, tracked: np.ndarray) -> np.ndarray:
+        return dubbed_vertices(model, seq, k, expression[j], weights, tracked)
+
+    tags = synthetic_mark(
+        "dub", bundle=bundle.manifest.get("id", bundle.root.name), audio=Path(audio_path).name
+    )
+    out = Path(output)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with (
+        FrameRenderer(bundle.path("renderer"), model, seq, device) as fr,
+        VideoWriter(
+            out, seq.fps, seq.width, seq.height, audio=original, audio_rate=rate, metadata=tags
+        ) as vw,
+    ):
+        frames = frames_at(bundle.path("target"), order, seq.fps)
+        for _, made in render_frames(fr, frames, order, {"dub": spoken}, progress, desc="dub"):
+            vw.write(made["dub"])
+    return DubResult(out, n_out, seq.fps, duration, time.perf_counter() - t_start, order, expression)

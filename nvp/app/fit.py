@@ -1,0 +1,160 @@
+"""``nvp fit``: learn a person from their footage.
+
+target video → tracking → speech features → person style (closed-form map + rest expression) → neural
+renderer training → ``PersonBundle`` (built in a ``.partial`` folder, resumable per stage, published
+atomically).
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from nvp import __version__
+from nvp.bundle import BundleBuilder, PersonBundle
+from nvp.errors import MediaError
+from nvp.tracked import TrackedSequence
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """Settings of ``nvp fit`` (saved in the bundle; resuming requires the same values)."""
+
+    preset: str = "cpu"
+    """Renderer preset (see ``renderer.preset.PRESETS``)."""
+    budget_minutes: float | None = None
+    """Wall-clock limit for renderer training; None = the preset's number of steps."""
+    steps: int | None = None
+    """Renderer training steps; None = the preset's default."""
+    features: str = "phonemes"
+    """Speech features of the person map (``phonemes`` or ``mel``)."""
+    device: str = "cpu"
+    """Torch device for renderer training (``cpu`` or ``cuda``)."""
+    vgg_weights: str | None = None
+    """Optional VGG-16 weights file for a perceptual renderer loss (see ``renderer.perceptual``)."""
+
+
+def _stage(name: str) -> float:
+    """Log the start of a ``fit`` stage; returns its start time."""
+    log.info("fit: %s", name)
+    return time.perf_counter()
+
+
+def fit(
+    video: str | Path,
+    out: str | Path,
+    cfg: FitConfig = FitConfig(),
+    progress: bool = True,
+    tracked: TrackedSequence | None = None,
+) -> PersonBundle:
+    """Build a person bundle from a talking-head video (1-3 minutes recommended).
+
+    ``tracked``: the video's tracking when the caller already has it (skips the tracking stage)."""
+    from nvp.media import probe_video
+
+    video, out = Path(video), Path(out)
+    info = probe_video(video)
+    if not info.has_audio:
+        raise MediaError(
+            f"{video} has no audio track: nvp fit needs the person's speech to learn their style"
+        )
+    builder = BundleBuilder(out, {k: v for k, v in asdict(cfg).items() if k not in ("device", "vgg_weights")})
+
+    if not builder.done("target"):
+        t0 = _stage("copy target")
+        tmp = builder.path("target").with_suffix(".tmp.mp4")
+        shutil.copyfile(video, tmp)
+        tmp.replace(builder.path("target"))
+        builder.mark_done("target", source=str(video), seconds=round(time.perf_counter() - t0, 2))
+
+    if not builder.done("track"):
+        from tracking.track import track_video
+
+        t0 = _stage("track")
+        seq = tracked if tracked is not None else track_video(builder.path("target"), progress=progress)[0]
+        seq.save(builder.path("tracked"))
+        builder.mark_done(
+            "track",
+            frames=seq.num_frames,
+            valid=int(seq.valid.sum()),
+            seconds=round(time.perf_counter() - t0, 2),
+        )
+
+    if not builder.done("style"):
+        from nvp.app.corpus import features_cached
+        from nvp.audio2exp import default_audio2exp
+        from nvp.face_model import default_face_model
+        from nvp.person import VideoSample, style_from_sample
+
+        t0 = _stage("person style")
+        seq = TrackedSequence.load(builder.path("tracked"))
+        windows = features_cached(
+            builder.path("target"), builder.work / "cache", cfg.features, seq.fps, seq.num_frames
+        )
+        net, manifest = default_audio2exp(cfg.features)
+        sample = VideoSample(name=video.name, windows=windows, tracked=seq)
+        style_from_sample(net, manifest, sample, default_face_model()).save(builder.path("style"))
+        builder.mark_done("style", seconds=round(time.perf_counter() - t0, 2))
+
+    if not builder.done("renderer"):
+        t0 = _stage("renderer")
+        _train_renderer(builder, cfg, progress)
+        builder.mark_done("renderer", seconds=round(time.perf_counter() - t0, 2))
+
+    from nvp.face_model import default_face_model
+    from nvp.person import PersonStyle
+
+    style = PersonStyle.load(builder.path("style"))
+    shutil.rmtree(builder.work / "cache", ignore_errors=True)
+    return builder.publish(
+        {
+            "nvp_version": __version__,
+            "face_model_sha256": default_face_model().sha256,
+            "audio2exp_sha256": style.audio2exp_sha256,
+            "feature_kind": style.feature_kind,
+            "preset": cfg.preset,
+            "target": {
+                "source": str(video),
+                "width": info.width,
+                "height": info.height,
+                "fps": info.fps,
+                "frames": info.num_frames,
+                "duration_s": info.duration_s,
+            },
+        }
+    )
+
+
+def _train_renderer(builder: BundleBuilder, cfg: FitConfig, progress: bool) -> None:
+    """Cache the footage's crops once (``work/renderer_frames``), then train (resumable)."""
+    from nvp.errors import FormatError
+    from nvp.face_model import default_face_model
+    from renderer.data import FrameCache, build_cache
+    from renderer.preset import get_preset
+    from renderer.train import RendererTrainConfig, train_renderer
+
+    preset = get_preset(cfg.preset)
+    seq = TrackedSequence.load(builder.path("tracked"))
+    frames_path = builder.work / "renderer_frames.json"
+    source = {"preset": cfg.preset, "frames": seq.num_frames}
+    try:
+        cache = FrameCache.load(frames_path, source)
+    except FormatError:  # missing, damaged or stale: rebuild
+        model = default_face_model()
+        cache = build_cache(builder.path("target"), seq, model, preset, np.flatnonzero(seq.valid), progress)
+        cache.save(frames_path, source)
+    budget = None if cfg.budget_minutes is None else cfg.budget_minutes * 60
+    tcfg = RendererTrainConfig(
+        preset=cfg.preset, steps=cfg.steps, budget_s=budget, vgg_weights=cfg.vgg_weights
+    )
+    train_renderer(cache, tcfg, builder.path("renderer"), device=cfg.device, progress=progress)
+    for name in ("renderer_frames.json", "renderer_frames.npz"):
+        (builder.work / name).unlink(missing_ok=True)
+    (builder.path("renderer") / "checkpoint.pt").unlink(missing_ok=True)

@@ -1,0 +1,187 @@
+"""One on-disk format for every saved object: a versioned JSON manifest beside an ``.npz`` of arrays.
+
+``save_artifact(path, kind, version, arrays, manifest)`` writes ``<stem>.npz`` and then ``<stem>.json``, each
+to a temporary file that is renamed into place, so a reader sees either the old pair or the new one; the
+manifest records the format name, its version, the arrays file, its size and its sha256.
+``load_artifact(path, kind, versions)`` checks all of that and raises one :class:`FormatError` that says what
+was expected and what was found (a truncated, emptied or swapped arrays file included). Nothing is pickled.
+
+Layout of a manifest::
+
+    {"format": "nvp.<kind>", "version": 3, "arrays": "<stem>.npz", "bytes": 1234, "sha256": "…", …}
+
+Writing is crash-safe (temporary name + ``os.replace``) and a full disk is reported as
+"disk full while writing PATH" (:class:`DiskFullError`), never as a half-written file.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import hashlib
+import json
+import os
+import zipfile
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from nvp.errors import FormatError, NvpError
+
+LOAD_ERRORS = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile)
+"""What reading a damaged ``.npz`` / ``.json`` can raise."""
+
+
+class DiskFullError(NvpError):
+    """The disk filled up while nvp wrote a file (nothing half-written was left behind)."""
+
+
+@dataclass(frozen=True)
+class Artifact:
+    """A loaded artifact.
+
+    Attributes:
+        manifest: the parsed JSON manifest (format, version, arrays, bytes, sha256 and the object's fields).
+        arrays: name → array, fully read into memory.
+        path: the manifest's path.
+    """
+
+    manifest: dict
+    arrays: dict[str, np.ndarray] = field(repr=False)
+    path: Path
+
+
+def manifest_path(path: str | os.PathLike[str]) -> Path:
+    """The ``.json`` manifest of an artifact given by its manifest, arrays file or stem."""
+    p = Path(path)
+    return p if p.suffix == ".json" else p.with_name(p.name.removesuffix(".npz") + ".json")
+
+
+def file_sha256(path: Path, chunk: int = 1 << 20) -> str:
+    """sha256 hex digest of a file, read in chunks."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
+def is_disk_full(e: BaseException) -> bool:
+    """Whether an exception says the disk is full (ENOSPC / EDQUOT, or zipfile's short-write message)."""
+    if isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT):
+        return True
+    return "requested and" in str(e) and "written" in str(e)
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
+    """Yield a hidden temporary path beside ``path``; on success it is renamed to ``path``, on any error it
+    is removed (a full disk becomes :class:`DiskFullError`). ``path``'s folder is created if missing."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp{path.suffix}")
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    except BaseException as e:
+        tmp.unlink(missing_ok=True)
+        if is_disk_full(e):
+            raise DiskFullError(f"disk full while writing {path}") from e
+        raise
+
+
+def write_json(path: str | os.PathLike[str], data: dict) -> Path:
+    """Write ``data`` as indented JSON atomically."""
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=2) + "\n")
+    return path
+
+
+def save_artifact(
+    path: str | os.PathLike[str],
+    kind: str,
+    version: int,
+    arrays: dict[str, np.ndarray],
+    manifest: dict | None = None,
+    compress: bool = False,
+) -> Path:
+    """Write ``<stem>.npz`` (``arrays``) and ``<stem>.json`` (``manifest`` plus the format fields).
+
+    Args:
+        path: the manifest path, the arrays path or their common stem.
+        kind: format name without the ``nvp.`` prefix (e.g. ``"tracked_sequence"``).
+        version: format version of ``kind``.
+        arrays: name → array (numeric or bool; object arrays are refused).
+        manifest: JSON-serialisable fields of the object.
+        compress: zip-deflate the arrays (smaller, slower).
+
+    Returns:
+        The manifest path.
+    """
+    js = manifest_path(path)
+    npz = js.with_suffix(".npz")
+    for name, a in arrays.items():
+        if np.asarray(a).dtype == object:
+            raise ValueError(f"array {name!r} has dtype object; artifacts hold numeric arrays only")
+    with atomic_path(npz) as tmp:
+        with open(tmp, "wb") as f:
+            (np.savez_compressed if compress else np.savez)(f, **arrays)
+    m = {
+        "format": f"nvp.{kind}",
+        "version": int(version),
+        "arrays": npz.name,
+        "bytes": npz.stat().st_size,
+        "sha256": file_sha256(npz),
+        **(manifest or {}),
+    }
+    return write_json(js, m)
+
+
+def read_manifest(path: str | os.PathLike[str], kind: str, versions: tuple[int, ...] | int) -> dict:
+    """The manifest of an artifact, checked for its format name and a supported version."""
+    js = manifest_path(path)
+    versions = (versions,) if isinstance(versions, int) else tuple(versions)
+    try:
+        m = json.loads(js.read_text())
+    except FileNotFoundError as e:
+        raise FormatError(f"{js} is missing") from e
+    except (OSError, ValueError) as e:
+        raise FormatError(f"cannot read {js}: {e}") from e
+    if not isinstance(m, dict) or m.get("format") != f"nvp.{kind}" or m.get("version") not in versions:
+        found = (m.get("format"), m.get("version")) if isinstance(m, dict) else (type(m).__name__, None)
+        raise FormatError(
+            f"{js}: expected nvp.{kind} version {' or '.join(map(str, versions))}, "
+            f"found {found[0]} version {found[1]}"
+        )
+    return m
+
+
+def check_arrays_file(js: Path, m: dict) -> Path:
+    """The arrays file named by manifest ``m`` of ``js``, checked against the recorded size and sha256
+    (manifests written before these were recorded are checked when their arrays are read)."""
+    npz = js.parent / m.get("arrays", js.with_suffix(".npz").name)
+    if not npz.is_file():
+        raise FormatError(f"{npz} is missing (named by {js.name})")
+    size = npz.stat().st_size
+    if "bytes" in m and size != m["bytes"]:
+        raise FormatError(f"{npz} is damaged: {size} bytes, its manifest says {m['bytes']} (truncated?)")
+    if "sha256" in m and file_sha256(npz) != m["sha256"]:
+        raise FormatError(f"{npz} is damaged: its sha256 does not match its manifest {js.name}")
+    return npz
+
+
+def load_artifact(path: str | os.PathLike[str], kind: str, versions: tuple[int, ...] | int) -> Artifact:
+    """Read and check an artifact written by :func:`save_artifact` (see :func:`read_manifest` and
+    :func:`check_arrays_file`); every array is read into memory."""
+    js = manifest_path(path)
+    m = read_manifest(js, kind, versions)
+    npz = check_arrays_file(js, m)
+    try:
+        with np.load(npz, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+    except LOAD_ERRORS as e:
+        raise FormatError(f"cannot read {npz}: {e or type(e).__name__}") from e
+    return Artifact(m, arrays, js)
