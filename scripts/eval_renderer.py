@@ -26,13 +26,14 @@ DEFAULT_VIDEOS = ["dfrf__cnn2_25fps.mp4", "mimictalk__German_20s.mp4", "styletal
 
 def evaluate(video: Path, out: Path, preset: str, budget_min: float, cache_dir: Path) -> dict:
     from nvp.app.corpus import tracked_cached
+    from nvp.errors import FormatError
     from nvp.face_model import default_face_model
     from nvp.media import iter_frames
     from nvp.metrics import psnr, ssim
     from renderer.crop import box_slices
     from renderer.data import FrameCache, build_cache
     from renderer.preset import get_preset
-    from renderer.render import FrameRenderer
+    from renderer.render import FrameRenderer, render_frames
     from renderer.train import RendererTrainConfig, train_renderer
 
     model = default_face_model()
@@ -40,12 +41,12 @@ def evaluate(video: Path, out: Path, preset: str, budget_min: float, cache_dir: 
     split = int(round(seq.num_frames * 0.8))
     out.mkdir(parents=True, exist_ok=True)
     # trains, or resumes an interrupted training, or returns at once when the budget is already spent
-    cp = out / "train_cache.npz"
-    if cp.exists():
-        cache = FrameCache.load(cp)
-    else:
+    cp, source = out / "train_cache.json", {"video": video.name, "preset": preset, "frames": split}
+    try:
+        cache = FrameCache.load(cp, source)
+    except FormatError:  # missing, damaged or made from other settings
         cache = build_cache(video, seq, model, get_preset(preset), np.arange(split))
-        cache.save(cp)
+        cache.save(cp, source)
     train_renderer(cache, RendererTrainConfig(preset=preset, steps=10**6, budget_s=budget_min * 60), out)
     manifest = json.loads((out / "renderer.json").read_text())
     test = np.arange(split, seq.num_frames)
@@ -59,15 +60,17 @@ def evaluate(video: Path, out: Path, preset: str, budget_min: float, cache_dir: 
         "head_turned": int(test[np.argmax(yaw[test])]),
     }
     with FrameRenderer(out, model, seq) as fr:
-        for t, frame in zip(test, iter_frames(video, fps=seq.fps, start_frame=split), strict=False):
-            t0 = time.perf_counter()
-            img = fr.render(frame, int(t), fr.tracked(int(t)))
+        frames = iter_frames(video, fps=seq.fps, start_frame=split)
+        t0 = time.perf_counter()
+        for t, (frame, made) in zip(test, render_frames(fr, frames, test, {"re": None}, False), strict=False):
             t_render += time.perf_counter() - t0
+            img = made["re"]
             ys, xs = box_slices(fr.boxes[t], *frame.shape[:2])
             crop, img_crop = frame[ys, xs], img[ys, xs]
             rows.append((psnr(frame, img), ssim(frame, img), psnr(crop, img_crop), ssim(crop, img_crop)))
             if t in picks.values():
                 keep[int(t)] = np.concatenate([frame[ys, xs], img[ys, xs]], 1)
+            t0 = time.perf_counter()
     from PIL import Image
 
     for name, t in picks.items():
