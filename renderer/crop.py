@@ -13,6 +13,7 @@ import torch
 import torch.nn.functional as F
 
 from renderer.masks import box_blur, dilate
+from renderer.warp import sample_pixels
 
 
 def _gaussian_smooth(x: np.ndarray, sigma: float) -> np.ndarray:
@@ -101,7 +102,10 @@ def paste(
     box: np.ndarray,
     weight: torch.Tensor,
     detail: tuple[torch.Tensor, torch.Tensor] | None = None,
-) -> torch.Tensor:
+    moved: tuple[torch.Tensor, torch.Tensor, np.ndarray, torch.Tensor, torch.Tensor] | None = None,
+    paint: torch.Tensor | None = None,
+    with_weight: bool = False,
+) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
     """Blend ``crop`` ``(C, S, S)`` back into ``frame`` ``(C, H, W)`` (both float) at ``box``.
 
     Only the frame pixels under the box are resampled (from the crop, bilinear) and blended with
@@ -112,6 +116,15 @@ def paste(
     There the frame's own fine detail, which the crop lost by being resampled to ``S × S``, is added back
     (the frame minus its crop-resolution copy), so the footage around a rendered face stays as sharp as
     it was; where the crop equals ``original`` the frame comes back unchanged.
+
+    ``moved = (source, source_crop, source_box, positions, valid)`` with ``paint`` ``(1, 1, S, S)`` (the
+    painted lower face): inside ``paint`` the fine detail of the ``source`` frame ``(C, H', W')`` is added at
+    the surface positions ``(S, S, 2)`` (source-frame pixels, see :func:`renderer.warp.source_positions`)
+    where ``valid`` ``(S, S)`` — the source minus its crop-resolution copy ``source_crop`` ``(C, S, S)``
+    cut at ``source_box``, so the network's render keeps its colours and gains the footage's stubble,
+    pores and lip texture moved with the new geometry.
+
+    ``with_weight``: also return the ``(H, W)`` blend weight of the crop in the frame (0 = footage kept).
     """
     _, h, w = frame.shape
     s = crop.shape[-1]
@@ -119,8 +132,9 @@ def paste(
     x0, x1 = max(int(np.floor(cx - side / 2)), 0), min(int(np.ceil(cx + side / 2)), w)
     y0, y1 = max(int(np.floor(cy - side / 2)), 0), min(int(np.ceil(cy + side / 2)), h)
     out = frame.clone()
+    full_weight = torch.zeros(h, w)
     if x1 <= x0 or y1 <= y0:
-        return out
+        return (out, full_weight) if with_weight else out
     # frame pixel centres of the region, in normalised crop coordinates
     xs = ((torch.arange(x0, x1, dtype=torch.float32) + 0.5 - cx) / side) * 2
     ys = ((torch.arange(y0, y1, dtype=torch.float32) + 0.5 - cy) / side) * 2
@@ -128,6 +142,10 @@ def paste(
     maps = [crop[None].float(), weight.expand(1, 1, s, s)]
     if detail is not None:
         maps += [detail[0][None].float(), detail[1].expand(1, 1, s, s)]
+    n_maps = sum(m.shape[1] for m in maps)
+    if moved is not None:
+        _, _, _, positions, valid = moved
+        maps += [positions.permute(2, 0, 1)[None].float(), (valid[None, None] * paint).float()]
     stacked = torch.cat(maps, 1)
     sampled = F.grid_sample(stacked, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
     c = crop.shape[0]
@@ -135,7 +153,18 @@ def paste(
     under = frame[:, y0:y1, x0:x1]
     blended = a * rgb + (1 - a) * under
     if detail is not None:
-        low, keep = sampled[0, c + 1 : 2 * c + 1], sampled[0, 2 * c + 1 :]
+        low, keep = sampled[0, c + 1 : 2 * c + 1], sampled[0, 2 * c + 1 : 2 * c + 2]
         blended = blended + a * keep * (under - low)
+    if moved is not None:
+        source, source_crop, source_box, _, _ = moved
+        pos = sampled[0, n_maps : n_maps + 2].permute(1, 2, 0)  # (h, w, 2) source-frame pixels
+        strength = sampled[0, n_maps + 2 :]
+        sx, sy, sside = (float(v) for v in source_box)
+        crop_pos = (pos - torch.tensor([sx - sside / 2, sy - sside / 2])) * (s / sside)
+        fine = sample_pixels(source, pos) - sample_pixels(source_crop, crop_pos)
+        blended = blended + a * strength * fine
     out[:, y0:y1, x0:x1] = blended
+    if with_weight:
+        full_weight[y0:y1, x0:x1] = a[0]
+        return out, full_weight
     return out

@@ -48,6 +48,12 @@ class FrameGeometry:
     mouth: torch.Tensor
     region: torch.Tensor
     lower: torch.Tensor | None = None
+    triangle_id: torch.Tensor | None = None
+    """``(S, S)`` int64 visible triangle (-1 = background); made when rendering (None in the cache)."""
+    barycentric: torch.Tensor | None = None
+    """``(S, S, 3)`` float32 barycentrics of the visible triangle; made when rendering."""
+    depth: torch.Tensor | None = None
+    """``(S, S)`` float32 camera z of the visible surface (0 = background); made when rendering."""
 
 
 def sequence_boxes(model: FaceModel, seq: TrackedSequence) -> np.ndarray:
@@ -88,6 +94,9 @@ class Rasterizer:
             mouth=mouth.float()[None, None],
             region=face_region(mask, self.grow),
             lower=lower[None, None],
+            triangle_id=r.triangle_id.clone(),
+            barycentric=r.barycentric.clone(),
+            depth=r.depth.clone(),
         )
 
 

@@ -11,8 +11,9 @@ import torch
 from nvp.face_model import FaceModel
 from nvp.tracked import TrackedSequence
 from renderer.crop import cut, feather, paste, region_weight
-from renderer.data import Rasterizer, blank_face, face_region, sequence_boxes
+from renderer.data import FrameGeometry, Rasterizer, blank_face, face_region, sequence_boxes
 from renderer.networks import load_renderer
+from renderer.warp import source_positions
 
 LOWER_FACE = 0.02
 """Mouth weight (``FaceModel.mouth_weights``) above which a mesh pixel is part of the re-rendered lower
@@ -27,18 +28,27 @@ class FrameRenderer:
         model: the face model.
         seq: the footage's tracking (camera, per-frame crop boxes).
         device: torch device of the networks.
+        detail: move the footage's own fine detail onto the painted lower face (see :meth:`render`).
 
     Use as a context manager (it owns an OpenGL context).
     """
 
     def __init__(
-        self, renderer_dir: Path, model: FaceModel, seq: TrackedSequence, device: str = "cpu"
+        self,
+        renderer_dir: Path,
+        model: FaceModel,
+        seq: TrackedSequence,
+        device: str = "cpu",
+        detail: bool = True,
     ) -> None:
         self.net, self.preset, self.manifest = load_renderer(renderer_dir, device)
         self.model, self.seq, self.device = model, seq, device
         self.boxes = sequence_boxes(model, seq)
         self.raster = Rasterizer(model, self.preset.crop, self.preset.region_grow)
         self.weight = feather(self.preset.crop)
+        self.detail = detail
+        self._triangles = torch.from_numpy(model.triangles)
+        self._movable = torch.from_numpy(~model.triangle_regions["mouth_interior"])
 
     def __enter__(self) -> FrameRenderer:
         return self
@@ -52,15 +62,30 @@ class FrameRenderer:
 
     @torch.inference_mode()
     def render(
-        self, frame: np.ndarray, index: int, vertices_cam: np.ndarray, original_cam: np.ndarray | None = None
-    ) -> np.ndarray:
+        self,
+        frame: np.ndarray,
+        index: int,
+        vertices_cam: np.ndarray,
+        original_cam: np.ndarray | None = None,
+        source: tuple[np.ndarray, int, np.ndarray] | None = None,
+        with_weight: bool = False,
+    ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
         """Frame ``index`` of the footage (``(H, W, 3)`` uint8) with the face replaced by a render of
         ``vertices_cam`` ``(V, 3)``; ``original_cam`` (the tracked geometry of that frame) widens the
-        replaced region so the original mouth and chin are covered too. Returns ``(H, W, 3)`` uint8."""
+        replaced region so the original mouth and chin are covered too. Returns ``(H, W, 3)`` uint8.
+
+        With ``self.detail`` on, the painted lower face also gets the fine detail (stubble, pores, lip
+        texture) of a source frame moved with the surface onto the new geometry (see
+        :mod:`renderer.warp`): ``source = (frame, index, tracked_cam)``, by default this very frame under
+        ``original_cam`` (or ``vertices_cam`` when there is none). The mouth interior gets none.
+
+        ``with_weight``: also return the ``(H, W)`` float32 weight of the render in the output (0 = the
+        footage's own pixel), i.e. where nvp changed the picture."""
         box = self.boxes[index]
         f, c = self.seq.focal, self.seq.center
         geo = self.raster(vertices_cam, f, c, box)
         region, lower = geo.region, geo.lower
+        orig = None
         if original_cam is not None:
             orig = self.raster(original_cam, f, c, box)
             region, lower = torch.maximum(region, orig.region), torch.maximum(lower, orig.lower)
@@ -80,8 +105,56 @@ class FrameRenderer:
         # it nothing of the footage's own mouth and chin shows through
         paint = face_region((lower > LOWER_FACE).float(), self.preset.region_grow) * region
         weight = self.weight * region_weight(paint)
-        out = paste(img, final[0].cpu() * 255, box, weight, detail=(crop[0] * 255, 1 - paint))
-        return out.clamp(0, 255).round().byte().permute(1, 2, 0).numpy()
+        moved = None
+        if self.detail and source is None:  # this very frame under its own tracked geometry
+            cam, src_geo = (vertices_cam, geo) if original_cam is None else (original_cam, orig)
+            moved = self._moved_detail(geo, img, index, cam, src_geo, crop[0] * 255)
+        elif self.detail:
+            src_img = torch.from_numpy(source[0]).permute(2, 0, 1).float()
+            moved = self._moved_detail(geo, src_img, source[1], source[2])
+        out, painted = paste(
+            img,
+            final[0].cpu() * 255,
+            box,
+            weight,
+            detail=(crop[0] * 255, 1 - paint),
+            moved=moved,
+            paint=paint,
+            with_weight=True,
+        )
+        out = out.clamp(0, 255).round().byte().permute(1, 2, 0).numpy()
+        return (out, painted.numpy()) if with_weight else out
+
+    def _moved_detail(
+        self,
+        geo: FrameGeometry,
+        src_img: torch.Tensor,
+        src_index: int,
+        src_cam: np.ndarray,
+        src_geo: FrameGeometry | None = None,
+        src_crop: torch.Tensor | None = None,
+    ) -> tuple:
+        """The ``moved`` argument of :func:`renderer.crop.paste`: where the surface points of ``geo`` are in
+        the source frame ``src_img`` ``(3, H, W)`` (frame ``src_index`` under ``src_cam`` ``(V, 3)``), and
+        the source's crop-resolution copy; ``src_geo`` / ``src_crop`` when the caller has them already."""
+        src_box = self.boxes[src_index]
+        f, c = self.seq.focal, self.seq.center
+        if src_geo is None:
+            src_geo = self.raster(src_cam, f, c, src_box)
+        if src_crop is None:
+            src_crop = cut(src_img[None], torch.from_numpy(src_box[None]).float(), self.preset.crop)[0]
+        scale, origin = self.preset.crop / src_box[2], src_box[:2] - src_box[2] / 2
+        pos, valid = source_positions(
+            geo.triangle_id,
+            geo.barycentric,
+            self._triangles,
+            torch.from_numpy(self.seq.pixels(src_cam)).float(),
+            torch.from_numpy(src_cam[:, 2]).float(),
+            src_geo.depth,
+            (scale, origin),
+            self._movable,
+        )
+        return src_img, src_crop, src_box, pos, valid
 
 
 Geometry = Callable[[int, int, np.ndarray], np.ndarray]

@@ -5,8 +5,8 @@
 1. Held-out time of validation videos (never seen by the generic network): the person map is solved on the
    first 80 % of each video, the last 20 % is predicted from its audio. Metrics (see
    ``nvp.app.train_audio2exp.evaluate_person``): mouth landmark error / IOD, lip vertex error (mm),
-   correlation of predicted and tracked mouth opening, lip-closure F1. Rows: phonemes net, the same net without its
-   temporal filter, mel net (if given), and the person's-mean-expression baseline.
+   correlation of predicted and tracked mouth opening, lip-closure F1. Rows: phonemes net, the same net
+   without its temporal filter, mel net (if given), and the person's-mean-expression baseline.
 2. Robustness: the longest validation person's style driven by every clip in ../shared/data/audio (other
    languages, singing, text-to-speech) and by silence: correlation between predicted mouth opening and the
    audio's loudness envelope, and the mouth opening during pauses vs speech.

@@ -1,0 +1,215 @@
+"""Lower-face quality where nvp paints (issue 15): region / mouth-box PSNR, sharpness, seams, baselines.
+
+For each video: tracking (cached), a renderer trained on the first 80 % (``scripts/eval_renderer.py``'s
+output folder, trained here if missing), the person's style solved on the same 80 %; then every ``--step``-th
+held-out frame ``t`` is re-created several ways and compared with the real frame in
+
+- the *painted region* (where nvp's render weighs ≥ 0.5 in the output) and
+- the *mouth box* (mediapipe lip landmarks of the real frame, grown by 60 % of the mouth width):
+
+| variant | geometry | fine detail |
+|---|---|---|
+| ``render`` | tracked | none (the networks' crop only; before issue 15) |
+| ``detail_other`` | tracked | moved from held-out frame ``s`` ≥ 1 s away, nearest pose (honest: a dub's |
+| | | footage frame shows another mouth too) |
+| ``detail_same`` | tracked | moved from frame ``t`` itself (optimistic: the answer's own detail) |
+| ``audio`` | mouth from the held-out audio | none |
+| ``audio_detail`` | mouth from the held-out audio | moved from frame ``s`` |
+| ``blur_fill`` (baseline) | — | the painted region inpainted from its border (OpenCV Telea) |
+| ``retrieval`` (baseline) | — | nearest-mouth training frame, painted region pasted (box-aligned) |
+
+Writes ``results.md`` / ``results.json`` and, per video, ``crops_<video>.png`` (mouth crops of an open, a
+closed and a mid frame; columns in the order of the table, real first). Reads ``../shared/data/video``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "video"
+VARIANTS = ("render", "detail_other", "detail_same", "audio", "audio_detail", "blur_fill", "retrieval")
+OPTIMISTIC = {"detail_same"}
+
+
+def _style_and_audio_expressions(video: Path, seq, split: int, cache: Path):
+    """Person style solved on frames < ``split``; expressions predicted from the audio after it."""
+    from nvp.app.corpus import features_cached
+    from nvp.audio2exp import default_audio2exp
+    from nvp.face_model import default_face_model
+    from nvp.media import audio_rate, read_audio
+    from nvp.person import VideoSample, predict_expressions, style_from_sample
+
+    net, manifest = default_audio2exp("phonemes")
+    windows = features_cached(video, cache, "phonemes", seq.fps, seq.num_frames)
+    train = VideoSample(video.name, windows[:split], seq.head(split))
+    style = style_from_sample(net, manifest, train, default_face_model())
+    rate = audio_rate(video)
+    audio = read_audio(video, rate)[int(round(split / seq.fps * rate)) :]
+    return predict_expressions(audio, rate, seq.fps, style, net, num_frames=seq.num_frames - split)
+
+
+def _retrieval(frames_by_index, seq, model, t: int, train: np.ndarray, boxes, weight, real):
+    """Baseline: the training frame whose tracked lip vertices are nearest to frame ``t``'s, its pixels
+    pasted into the painted region by the crop-box similarity (full resolution)."""
+    import torch
+
+    from renderer.warp import sample_pixels
+
+    lips = np.flatnonzero(model.vertex_regions["lips"])
+    v = model.vertices(seq.identity, seq.expression[np.r_[train, t]])[:, lips]
+    r = int(train[np.argmin(np.linalg.norm(v[:-1] - v[-1], axis=-1).mean(-1))])
+    src = frames_by_index(r)
+    (cx, cy, side), (sx, sy, sside) = boxes[t], boxes[r]
+    ys, xs = np.mgrid[: real.shape[0], : real.shape[1]].astype(np.float32) + 0.5
+    pos = np.stack([(xs - cx) * sside / side + sx, (ys - cy) * sside / side + sy], -1).astype(np.float32)
+    img = torch.from_numpy(src).permute(2, 0, 1).float()
+    pasted = sample_pixels(img, torch.from_numpy(pos)).permute(1, 2, 0).numpy()
+    w = weight[..., None]
+    return np.clip(w * pasted + (1 - w) * real, 0, 255).round().astype(np.uint8)
+
+
+def evaluate(video: Path, out: Path, cache: Path, budget_min: float, step: int, max_frames: int) -> dict:
+    import cv2
+
+    from nvp.app.corpus import tracked_cached
+    from nvp.app.dub import dubbed_vertices
+    from nvp.face_model import default_face_model
+    from nvp.image_metrics import masked_psnr, masked_ssim, mouth_box, seam_gradient_ratio, sharpness_ratios
+    from nvp.media import frames_at
+    from renderer.render import FrameRenderer
+    from tracking.landmarks import LandmarkDetector
+
+    model = default_face_model()
+    seq = tracked_cached(video, cache, progress=False)
+    split = int(round(seq.num_frames * 0.8))
+    rdir = out / video.stem
+    if not (rdir / "renderer.json").exists():
+        sys.path.insert(0, str(Path(__file__).parent))
+        from eval_renderer import evaluate as train_and_eval
+
+        train_and_eval(video, rdir, "cpu", budget_min, cache)
+    expr_audio = _style_and_audio_expressions(video, seq, split, cache)
+    test = np.arange(split, seq.num_frames)[::step][:max_frames]
+    yaw = np.degrees(np.arctan2(seq.rotation[:, 0, 2], seq.rotation[:, 2, 2]))
+    pitch = np.degrees(np.arctan2(-seq.rotation[:, 1, 2], seq.rotation[:, 2, 2]))
+    held = np.arange(split, seq.num_frames)
+    min_gap = int(round(seq.fps))
+
+    def other(t: int) -> int:
+        far = held[np.abs(held - t) >= min_gap]
+        if len(far) == 0:
+            far = held[held != t]
+        return int(far[np.argmin(np.hypot(yaw[far] - yaw[t], pitch[far] - pitch[t]))])
+
+    sources = {int(t): other(int(t)) for t in test}
+    train_idx = np.flatnonzero(seq.valid[:split])
+    weights = model.mouth_weights()
+    lips = model.landmark_groups["lips_outer"]
+    rows: dict[str, list[dict]] = {k: [] for k in VARIANTS}
+    crops: dict[int, list[np.ndarray]] = {}
+    gap = model.inner_lip_gap(seq.identity, seq.expression)
+    picks = {int(test[np.argmax(gap[test])]), int(test[np.argmin(gap[test])]), int(test[len(test) // 2])}
+
+    def frame_at(i: int) -> np.ndarray:
+        return next(iter(frames_at(video, np.array([i]), seq.fps)))
+
+    with (
+        FrameRenderer(rdir, model, seq, detail=False) as plain,
+        FrameRenderer(rdir, model, seq, detail=True) as fine,
+        LandmarkDetector() as det,
+    ):
+        for t in test:
+            t = int(t)
+            real = frame_at(t)
+            found = det.detect(real, t / seq.fps)
+            if found is None:
+                continue
+            s = sources[t]
+            src = (frame_at(s), s, fine.tracked(s))
+            tracked = plain.tracked(t)
+            spoken = dubbed_vertices(model, seq, t, expr_audio[t - split], weights, tracked)
+            made, weight = {}, None
+            made["render"], weight = plain.render(real, t, tracked, with_weight=True)
+            made["detail_other"] = fine.render(real, t, tracked, source=src)
+            made["detail_same"] = fine.render(real, t, tracked)
+            made["audio"] = plain.render(real, t, spoken, tracked)
+            made["audio_detail"] = fine.render(real, t, spoken, tracked, source=src)
+            painted = weight >= 0.5
+            made["blur_fill"] = cv2.inpaint(real, painted.astype(np.uint8), 5, cv2.INPAINT_TELEA)
+            made["retrieval"] = _retrieval(frame_at, seq, model, t, train_idx, plain.boxes, weight, real)
+            box = mouth_box(found.points[lips, :2], real.shape[:2])
+            y0, y1, x0, x1 = box
+            in_box = np.zeros(painted.shape, bool)
+            in_box[y0:y1, x0:x1] = True
+            for k, img in made.items():
+                rows[k].append(
+                    {
+                        "psnr_painted": masked_psnr(img, real, painted),
+                        "psnr_mouth": masked_psnr(img, real, in_box),
+                        "ssim_mouth": masked_ssim(img, real, in_box),
+                        **sharpness_ratios(img, real, box),
+                        "seam_ratio": seam_gradient_ratio(img, real, weight),
+                    }
+                )
+            if t in picks:
+                crops[t] = [real[y0:y1, x0:x1]] + [made[k][y0:y1, x0:x1] for k in VARIANTS]
+    result = {"video": video.name, "size": f"{seq.width}x{seq.height}", "test_frames": len(rows["render"])}
+    for k in VARIANTS:
+        keys = rows[k][0].keys() if rows[k] else ()
+        result[k] = {m: float(np.nanmean([r[m] for r in rows[k]])) for m in keys}
+    _save_crops(crops, out / f"crops_{video.stem}.png")
+    return result
+
+
+def _save_crops(crops: dict[int, list[np.ndarray]], path: Path, height: int = 160) -> None:
+    import cv2
+
+    lines = []
+    for t in sorted(crops):
+        tiles = [cv2.resize(c, (int(c.shape[1] * height / c.shape[0]), height)) for c in crops[t]]
+        lines.append(np.hstack(tiles))
+    if lines:
+        width = max(line.shape[1] for line in lines)
+        lines = [np.pad(line, ((0, 0), (0, width - line.shape[1]), (0, 0))) for line in lines]
+        cv2.imwrite(str(path), cv2.cvtColor(np.vstack(lines), cv2.COLOR_RGB2BGR))
+
+
+def main(argv: list[str] | None = None) -> int:
+    from nvp.app.report import markdown_table
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--videos", nargs="+", default=["dfrf__cnn2_25fps.mp4", "wav2lipgfpgan__kim_7s_raw.mp4"])
+    ap.add_argument("--out", type=Path, default=Path("out/eval_renderer"), help="renderers (eval_renderer)")
+    ap.add_argument("--cache", type=Path, default=Path("out/a2e/cache"), help="tracking/feature cache")
+    ap.add_argument(
+        "--budget-minutes", type=float, default=20.0, help="training time when a renderer is missing"
+    )
+    ap.add_argument("--step", type=int, default=5, help="evaluate every n-th held-out frame")
+    ap.add_argument("--max-frames", type=int, default=60, help="at most this many frames per video")
+    args = ap.parse_args(argv)
+    if not SHARED.is_dir():
+        print(f"no evaluation data: {SHARED} does not exist")
+        return 0
+    results = [
+        evaluate(SHARED / v, args.out, args.cache, args.budget_minutes, args.step, args.max_frames)
+        for v in args.videos
+    ]
+    (args.out / "lower_face.json").write_text(json.dumps(results, indent=2) + "\n")
+    rows = []
+    for r in results:
+        for k in VARIANTS:
+            name = k + (" (optimistic)" if k in OPTIMISTIC else "")
+            rows.append({"video": r["video"], "size": r["size"], "variant": name, **r[k]})
+    table = markdown_table(rows, digits=3)
+    (args.out / "lower_face.md").write_text(table + "\n")
+    print(table)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

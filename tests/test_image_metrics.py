@@ -1,0 +1,75 @@
+"""Tests for nvp.image_metrics with known answers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from nvp.image_metrics import (
+    border_band,
+    masked_psnr,
+    masked_ssim,
+    mouth_box,
+    seam_gradient_ratio,
+    sharpness_ratios,
+)
+
+
+def textured(seed: int = 0, size: int = 64) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return rng.integers(40, 215, (size, size, 3)).astype(np.uint8)
+
+
+def test_masked_psnr_counts_only_the_mask():
+    a = np.full((8, 8, 3), 100, np.uint8)
+    b = a.copy()
+    b[:4] += 10  # differs by 10 in the top half only
+    top = np.zeros((8, 8), bool)
+    top[:4] = True
+    assert masked_psnr(a, b, top) == pytest.approx(20 * np.log10(255 / 10))
+    assert masked_psnr(a, b, ~top) == float("inf")
+    assert np.isnan(masked_psnr(a, b, np.zeros((8, 8), bool)))
+
+
+def test_masked_ssim_is_one_where_equal_and_lower_where_not():
+    a = textured()
+    b = a.copy()
+    b[32:] = textured(1)[32:]
+    top = np.zeros(a.shape[:2], bool)
+    top[:24] = True
+    assert masked_ssim(a, b, top) == pytest.approx(1.0, abs=1e-4)
+    assert masked_ssim(a, b, ~top) < 0.5
+
+
+def test_mouth_box_grows_by_the_mouth_width_and_clips():
+    lips = np.array([[40.0, 50.0], [60.0, 50.0], [50.0, 45.0], [50.0, 55.0]])  # 20 px wide
+    assert mouth_box(lips, (100, 100)) == (33, 67, 28, 72)  # 0.6 * 20 = 12 px on each side
+    assert mouth_box(lips, (60, 65)) == (33, 60, 28, 65)
+
+
+def test_sharpness_ratios_of_same_blurred_and_noisy_images():
+    import cv2
+
+    real = textured(size=96)
+    box = (16, 80, 16, 80)
+    same = sharpness_ratios(real, real, box)
+    assert same["hf_ratio"] == pytest.approx(1.0) and same["laplacian_ratio"] == pytest.approx(1.0)
+    soft = sharpness_ratios(cv2.GaussianBlur(real, (7, 7), 2.0), real, box)
+    assert soft["hf_ratio"] < 0.2 and soft["laplacian_ratio"] < 0.5
+    smooth = cv2.GaussianBlur(real, (9, 9), 3.0)
+    grainy = np.clip(smooth + np.random.default_rng(5).normal(0, 20, smooth.shape), 0, 255).astype(np.uint8)
+    assert sharpness_ratios(grainy, smooth, box)["hf_ratio"] > 5.0
+
+
+def test_seam_ratio_is_one_without_a_seam_and_grows_with_one():
+    real = np.full((64, 64, 3), 120, np.uint8)
+    weight = np.zeros((64, 64), np.float32)
+    weight[16:48, 16:48] = 1.0
+    band = border_band(weight, 2)
+    assert band[16, 30] and band[15, 30] and not band[30, 30] and not band[2, 2]
+    real = real + (np.indices((64, 64))[1][..., None] // 8).astype(np.uint8)  # a gentle ramp
+    assert seam_gradient_ratio(real, real, weight) == pytest.approx(1.0)
+    seam = real.copy()
+    seam[16:48, 16:48] += 30  # the painted square is brighter: a visible edge at its border
+    assert seam_gradient_ratio(seam, real, weight) > 2.0
+    assert np.isnan(seam_gradient_ratio(real, real, np.zeros_like(weight)))

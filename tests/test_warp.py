@@ -1,0 +1,73 @@
+"""Tests for renderer.warp: the surface correspondence that moves the footage's detail."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from renderer.raster_ref import rasterize_reference
+from renderer.warp import sample_pixels, source_positions, surface_points
+
+
+def test_surface_points_interpolate_vertex_values():
+    tri = torch.tensor([[0, 1, 2]])
+    values = torch.tensor([[0.0, 0.0], [10.0, 0.0], [0.0, 20.0]])
+    tid = torch.tensor([[0, -1]])
+    bary = torch.tensor([[[0.5, 0.25, 0.25], [1.0, 0.0, 0.0]]])
+    out = surface_points(tid, bary, tri, values)
+    np.testing.assert_allclose(out[0, 0], [2.5, 5.0])
+    np.testing.assert_allclose(out[0, 1], [0.0, 0.0])  # background
+
+
+def test_sample_pixels_reads_pixel_centres_and_interpolates():
+    img = torch.arange(12.0).reshape(1, 3, 4)  # value = 4 * row + col
+    pos = torch.tensor([[0.5, 0.5], [3.5, 2.5], [1.0, 0.5], [2.5, 1.0]])  # (x, y)
+    np.testing.assert_allclose(sample_pixels(img, pos)[0], [0.0, 11.0, 0.5, 4.0], atol=1e-5)
+
+
+def quad(z: float = 10.0, shift: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    v = np.array([[-1, -1, z], [1, -1, z], [1, 1, z], [-1, 1, z]], np.float64)
+    v[:, 0] += shift
+    return v, np.array([[0, 1, 2], [0, 2, 3]])
+
+
+def test_same_geometry_maps_every_pixel_to_itself():
+    size, focal, center = 32, 100.0, np.array([16.0, 16.0])
+    v, tri = quad()
+    r = rasterize_reference(v, tri, np.zeros((4, 2)), focal, center, size, size)
+    pix = torch.from_numpy(focal * v[:, :2] / v[:, 2:] + center).float()
+    pos, valid = source_positions(
+        r.triangle_id,
+        r.barycentric,
+        torch.from_numpy(tri),
+        pix,
+        torch.from_numpy(v[:, 2]).float(),
+        r.depth,
+        (1.0, np.zeros(2)),
+        torch.ones(2, dtype=torch.bool),
+    )
+    ys, xs = np.nonzero(r.mask.numpy())
+    np.testing.assert_allclose(pos[ys, xs, 0], xs + 0.5, atol=1e-3)
+    np.testing.assert_allclose(pos[ys, xs, 1], ys + 0.5, atol=1e-3)
+    assert valid[r.mask].min() == 1 and valid[~r.mask].max() == 0
+
+
+def test_moved_geometry_points_at_the_old_place_and_hidden_or_excluded_points_are_invalid():
+    size, focal, center = 32, 100.0, np.array([16.0, 16.0])
+    old, tri = quad()
+    new, _ = quad(shift=0.2)  # the surface moved 2 px to the right
+    r = rasterize_reference(new, tri, np.zeros((4, 2)), focal, center, size, size)
+    src = rasterize_reference(old, tri, np.zeros((4, 2)), focal, center, size, size)
+    pix = torch.from_numpy(focal * old[:, :2] / old[:, 2:] + center).float()
+    args = (r.triangle_id, r.barycentric, torch.from_numpy(tri), pix, torch.from_numpy(old[:, 2]).float())
+    pos, valid = source_positions(*args, src.depth, (1.0, np.zeros(2)), torch.ones(2, dtype=torch.bool))
+    y, x = 16, 20
+    assert pos[y, x, 0].item() == pytest.approx(x + 0.5 - 2.0, abs=1e-3) and valid[y, x] == 1
+    # a nearer surface in the source hides the point
+    hidden = torch.where(src.depth > 0, src.depth - 1.0, src.depth)
+    _, valid2 = source_positions(*args, hidden, (1.0, np.zeros(2)), torch.ones(2, dtype=torch.bool))
+    assert valid2.max() == 0
+    # triangles that may not be moved (the mouth interior) are never valid
+    _, valid3 = source_positions(*args, src.depth, (1.0, np.zeros(2)), torch.tensor([True, False]))
+    assert valid3[r.triangle_id == 1].max() == 0 and valid3[r.triangle_id == 0].min() == 1
