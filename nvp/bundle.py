@@ -2,25 +2,31 @@
 
 Layout of a bundle folder::
 
-    bundle.json        manifest (format, version, hashes, preset, file map, stage timings)
+    bundle.json        manifest (format, version, hashes, preset, file map, stage timings, input hash)
     target.mp4         the target footage (copied: the bundle is self-contained)
     tracked/           TrackedSequence of the footage
     style.{json,npz}   the person's talking style (person map + rest expression)
     renderer/          neural texture + networks (renderer weights and their manifest)
 
-A bundle is built in ``<out>.partial/`` and renamed to ``<out>`` when every stage is done, so a folder
-with a ``bundle.json`` is always complete; an interrupted ``nvp fit`` resumes from the ``.partial``
-folder, skipping the stages already recorded in its ``progress.json``.
+A bundle is built in ``<out>.partial/`` (its ``progress.json`` records the settings, the sha256 of the input
+video and the finished stages, so an interrupted ``nvp fit`` resumes, and restarts when the input changed),
+then published by an atomic swap: ``bundle.json`` is written into the partial folder, an older bundle at
+``<out>`` is moved aside to ``<out>.replaced``, the partial folder is renamed to ``<out>`` and the old one
+removed. A run killed anywhere in between leaves a state that the next :class:`BundleBuilder` (or
+:func:`recover`) completes. nvp never deletes or moves a folder that it did not make: ``<out>`` must be
+missing, empty or a person bundle.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
-from nvp.errors import FormatError
+from nvp.artifact import LOAD_ERRORS, check_arrays_file, file_sha256, read_manifest, write_json
+from nvp.errors import FormatError, NvpError
 
 FORMAT = "nvp.person_bundle"
 FORMAT_VERSION = 1
@@ -32,6 +38,12 @@ FILES = {
     "style": "style.json",
     "renderer": "renderer",
 }
+MEMBER_ARTIFACTS = {
+    "tracked": ("tracked/tracked.json", "tracked_sequence", (1,)),
+    "style": ("style.json", "person_map", (1,)),
+    "renderer": ("renderer/renderer.json", "renderer", (3, 4, 5, 6)),
+}
+"""Bundle member → (manifest path in the bundle, artifact kind, accepted versions), checked on load."""
 
 
 @dataclass(frozen=True)
@@ -52,21 +64,19 @@ class PersonBundle:
         return self.root / self.manifest["files"][key]
 
     @classmethod
-    def load(cls, root: str | Path) -> PersonBundle:
-        """Open a bundle, checking its format, version, members and face-model hash."""
+    def load(cls, root: str | Path, verify: bool = True) -> PersonBundle:
+        """Open a bundle, checking its format, version, face-model hash and every member: present, and
+        (``verify``) the arrays of each at the size and sha256 their manifests record, the target video at
+        its recorded size — a truncated or emptied file is reported here, not as a crash later."""
         from nvp.face_model import default_face_model
 
         root = Path(root)
+        recover(root)
         js = root / MANIFEST
         if not js.exists():
-            hint = " (an interrupted nvp fit? run it again to resume)" if _partial(root).exists() else ""
+            hint = " (an interrupted nvp fit? run it again to resume)" if partial_dir(root).exists() else ""
             raise FormatError(f"{root} is not a person bundle: {MANIFEST} missing{hint}")
-        try:
-            m = json.loads(js.read_text())
-        except (OSError, ValueError) as e:
-            raise FormatError(f"cannot read {js}: {e}") from e
-        if m.get("format") != FORMAT:
-            raise FormatError(f"{js}: expected format {FORMAT}, found {m.get('format')}")
+        m = _read_bundle_manifest(js)
         if m.get("version") != FORMAT_VERSION:
             raise FormatError(
                 f"{js}: bundle version {m.get('version')} is not supported by this nvp "
@@ -78,30 +88,131 @@ class PersonBundle:
         for key in FILES:
             if not bundle.path(key).exists():
                 raise FormatError(f"{root} is incomplete: {m['files'][key]} missing")
+        if verify:
+            bundle.check()
         return bundle
 
+    def check(self) -> None:
+        """Raise :class:`FormatError` naming the first damaged member (arrays truncated, emptied or
+        altered; the target video shorter than recorded)."""
+        for key, (rel, kind, versions) in MEMBER_ARTIFACTS.items():
+            js = self.root / rel
+            try:
+                check_arrays_file(js, read_manifest(js, kind, versions))
+            except FormatError as e:
+                raise FormatError(f"{self.root} is damaged ({key}): {e}; run nvp fit again") from e
+        size = self.manifest.get("target", {}).get("bytes")
+        target = self.path("target")
+        if size is not None and target.stat().st_size != size:
+            raise FormatError(
+                f"{self.root} is damaged (target): {target.name} has {target.stat().st_size} bytes, "
+                f"the bundle recorded {size}; run nvp fit again"
+            )
 
-def _partial(root: Path) -> Path:
+
+def _read_bundle_manifest(js: Path) -> dict:
+    try:
+        m = json.loads(js.read_text())
+    except LOAD_ERRORS as e:
+        raise FormatError(f"cannot read {js}: {e}") from e
+    if not isinstance(m, dict) or m.get("format") != FORMAT:
+        raise FormatError(
+            f"{js}: expected format {FORMAT}, found {m.get('format') if isinstance(m, dict) else m}"
+        )
+    return m
+
+
+def partial_dir(root: Path) -> Path:
+    """Where a bundle is built before it is published."""
     return root.with_name(root.name + ".partial")
 
 
-class BundleBuilder:
-    """Builds a bundle in ``<root>.partial`` with resumable stages, then publishes it atomically."""
+def replaced_dir(root: Path) -> Path:
+    """Where an older bundle waits while a new one is published."""
+    return root.with_name(root.name + ".replaced")
 
-    def __init__(self, root: str | Path, config: dict) -> None:
+
+def is_bundle(path: Path) -> bool:
+    """Whether ``path`` is a folder holding a person bundle's manifest (of any version)."""
+    try:
+        return path.is_dir() and _read_bundle_manifest(path / MANIFEST) is not None
+    except FormatError:
+        return False
+
+
+def recover(root: Path) -> None:
+    """Finish a publish that was interrupted (see the module docstring); a no-op otherwise."""
+    root = Path(root)
+    work, old = partial_dir(root), replaced_dir(root)
+    publishing = is_bundle(work) and not (work / PROGRESS).exists()  # bundle.json written, not yet swapped
+    if publishing and (not root.exists() or is_bundle(root)):
+        if root.exists():
+            if old.exists():
+                shutil.rmtree(old)
+            os.replace(root, old)
+        os.replace(work, root)
+    if old.exists() and is_bundle(root):
+        shutil.rmtree(old)  # killed before the old bundle was removed
+    elif old.exists() and not root.exists() and is_bundle(old):
+        os.replace(old, root)  # killed after moving the old bundle aside, before the new one was ready
+
+
+def check_output_folder(root: Path, inputs: tuple[Path, ...] = ()) -> None:
+    """Refuse an output that nvp would have to delete or overwrite without having made it: a file, one of
+    the ``inputs``, or a folder that is neither empty nor a person bundle."""
+    root = Path(root)
+    for p in inputs:
+        if root.resolve() == Path(p).resolve():
+            raise NvpError(f"the output {root} is the input video; choose a new folder for the person bundle")
+    if root.exists() and not root.is_dir():
+        raise NvpError(f"the output {root} is a file; a person bundle is a folder (choose a new name)")
+    if root.is_dir() and any(root.iterdir()) and not is_bundle(root):
+        raise NvpError(
+            f"the output folder {root} is not empty and is not a person bundle; nvp will not overwrite it "
+            "(choose a new or empty folder)"
+        )
+    work = partial_dir(root)
+    if work.exists() and not (work / PROGRESS).exists() and not is_bundle(work):
+        raise NvpError(f"{work} exists and was not made by nvp fit; move it away first")
+
+
+class BundleBuilder:
+    """Builds a bundle in ``<root>.partial`` with resumable stages, then publishes it atomically.
+
+    ``config``: the settings a resume must share; ``input_sha256``: the input video's hash — a partial
+    bundle made from another input is discarded and the fit starts again (``restarted`` is then True).
+    """
+
+    def __init__(self, root: str | Path, config: dict, input_sha256: str | None = None) -> None:
         self.root = Path(root)
-        self.work = _partial(self.root)
-        self.work.mkdir(parents=True, exist_ok=True)
+        check_output_folder(self.root)
+        recover(self.root)
+        self.work = partial_dir(self.root)
         self._progress_path = self.work / PROGRESS
-        self.progress = json.loads(self._progress_path.read_text()) if self._progress_path.exists() else {}
+        self.progress = self._read_progress()
+        self.restarted = False
+        if input_sha256 is not None and self.progress.get("input_sha256", input_sha256) != input_sha256:
+            shutil.rmtree(self.work)  # an nvp-made partial bundle of another video: start again
+            self.progress, self.restarted = {}, True
         if self.progress.get("config", config) != config:
             changed = sorted(k for k in config if self.progress["config"].get(k) != config[k])
             raise FormatError(
                 f"{self.work} holds an interrupted fit with other settings ({', '.join(changed)}); "
                 "delete it or use the same settings to resume"
             )
+        self.work.mkdir(parents=True, exist_ok=True)
         self.progress["config"] = config
+        if input_sha256 is not None:
+            self.progress["input_sha256"] = input_sha256
         self._save()
+
+    def _read_progress(self) -> dict:
+        if not self._progress_path.exists():
+            return {}
+        try:
+            return json.loads(self._progress_path.read_text())
+        except LOAD_ERRORS:
+            return {}  # damaged by a crash while it was replaced: the stages are redone
 
     def path(self, key: str) -> Path:
         return self.work / FILES[key]
@@ -114,23 +225,32 @@ class BundleBuilder:
         self._save()
 
     def _save(self) -> None:
-        tmp = self.work / f".{PROGRESS}.tmp"
-        tmp.write_text(json.dumps(self.progress, indent=2) + "\n")
-        os.replace(tmp, self._progress_path)
+        write_json(self._progress_path, self.progress)
 
     def publish(self, manifest: dict) -> PersonBundle:
-        """Write ``bundle.json`` and move the folder to its final name (replacing an older bundle)."""
+        """Write ``bundle.json`` and swap the folder into place (replacing an older bundle)."""
         m = {"format": FORMAT, "version": FORMAT_VERSION, "files": dict(FILES), **manifest}
         m["stages"] = self.progress.get("stages", {})
-        (self.work / MANIFEST).write_text(json.dumps(m, indent=2) + "\n")
-        self._progress_path.unlink()
-        if self.root.exists():
-            old = self.root.with_name(self.root.name + ".old")
-            os.replace(self.root, old)
-            os.replace(self.work, self.root)
-            import shutil
-
-            shutil.rmtree(old)
-        else:
-            os.replace(self.work, self.root)
+        m["input_sha256"] = self.progress.get("input_sha256")
+        m["config"] = self.progress.get("config", {})
+        m.setdefault("target", {})["bytes"] = self.path("target").stat().st_size
+        write_json(self.work / MANIFEST, m)
+        self._progress_path.unlink()  # from here on the partial folder is a complete bundle
+        recover(self.root)  # the swap; a run killed in it is finished by the next one the same way
         return PersonBundle(self.root, m)
+
+
+def finished_bundle(root: Path, config: dict, input_sha256: str) -> PersonBundle | None:
+    """The bundle at ``root`` if it is complete, undamaged and was fitted from the same input with the
+    same settings (so fitting again would only repeat the work); None otherwise."""
+    try:
+        b = PersonBundle.load(root)
+    except NvpError:
+        return None
+    same = b.manifest.get("input_sha256") == input_sha256 and b.manifest.get("config") == config
+    return b if same else None
+
+
+def input_hash(path: Path) -> str:
+    """sha256 of an input file (what a resume must match)."""
+    return file_sha256(Path(path))

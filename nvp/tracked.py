@@ -131,7 +131,8 @@ class TrackedSequence:
     def load(cls, path: str | Path) -> TrackedSequence:
         """Load from a tracking directory (or its ``tracked.json``)."""
         path = Path(path)
-        art = load_artifact(path / MANIFEST if path.is_dir() else path, "tracked_sequence", FORMAT_VERSION)
+        js = path if path.suffix == ".json" else path / MANIFEST
+        art = load_artifact(js, "tracked_sequence", FORMAT_VERSION)
         m = art.manifest
         missing = set(ARRAY_FIELDS) - set(art.arrays)
         if missing:

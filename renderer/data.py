@@ -18,12 +18,15 @@ from tqdm import tqdm
 from nvp.artifact import load_artifact, save_artifact
 from nvp.errors import FormatError
 from nvp.face_model import FaceModel
+from nvp.geometry import pinhole
 from nvp.tracked import TrackedSequence
 from renderer.crop import crop_boxes, crop_camera, cut
 from renderer.masks import dilate
 from renderer.preset import Preset
+from renderer.warp import sample_pixels, source_positions
 
-CACHE_FIELDS = ("frames", "crops", "uv", "mask", "mouth", "region", "boxes")
+CACHE_FIELDS = ("frames", "crops", "uv", "mask", "mouth", "region", "boxes", "vertices", "camera")
+CACHE_VERSION = 2  # 2: camera-frame vertices and the camera, for moving one frame's pixels onto another
 
 log = logging.getLogger(__name__)
 
@@ -121,6 +124,8 @@ class FrameCache:
         crops: ``(N, S, S, 3)`` uint8 footage crops.
         uv: ``(N, S, S, 2)`` float16; mask, mouth, region: ``(N, S, S)`` bool.
         boxes: ``(N, 3)`` crop boxes.
+        vertices: ``(N, V, 3)`` float32 tracked camera-frame vertices.
+        camera: ``(3,)`` float32 focal length and principal point of the footage (pixels).
     """
 
     frames: np.ndarray
@@ -130,6 +135,8 @@ class FrameCache:
     mouth: np.ndarray
     region: np.ndarray
     boxes: np.ndarray
+    vertices: np.ndarray
+    camera: np.ndarray
 
     def batch(
         self, idx: np.ndarray, device: str | torch.device = "cpu"
@@ -148,12 +155,12 @@ class FrameCache:
         """Write ``path`` (``.json`` + ``.npz``, :mod:`nvp.artifact`); ``source`` says what it was cut from
         (checked by :meth:`load` so a cache is never reused for other footage)."""
         arrays = {k: getattr(self, k) for k in CACHE_FIELDS}
-        return save_artifact(path, "renderer_frames", 1, arrays, {"source": source or {}})
+        return save_artifact(path, "renderer_frames", CACHE_VERSION, arrays, {"source": source or {}})
 
     @classmethod
     def load(cls, path: Path, source: dict | None = None) -> FrameCache:
         """Read a cache written by :meth:`save`; with ``source``, it must match the one saved."""
-        art = load_artifact(path, "renderer_frames", 1)
+        art = load_artifact(path, "renderer_frames", CACHE_VERSION)
         if source is not None and art.manifest.get("source") != source:
             raise FormatError(f"{art.path} was made from other footage or settings")
         return cls(**{k: art.arrays[k] for k in CACHE_FIELDS})
@@ -182,6 +189,8 @@ def build_cache(
         mouth=np.empty((n, s, s), bool),
         region=np.empty((n, s, s), bool),
         boxes=boxes[frames].astype(np.float32),
+        vertices=seq.camera_vertices(model, frames).astype(np.float32),
+        camera=np.array([seq.focal, *seq.center], np.float32),
     )
     row = {int(f): i for i, f in enumerate(frames)}
     rast = Rasterizer(model, s, preset.region_grow)
@@ -195,8 +204,7 @@ def build_cache(
             frame = torch.from_numpy(img).permute(2, 0, 1)[None]
             crop = cut(frame, torch.from_numpy(boxes[t : t + 1]).float(), s)[0]
             cache.crops[i] = crop.clamp(0, 255).round().byte().permute(1, 2, 0).numpy()
-            v = seq.camera_vertices(model, np.array([t]))[0]
-            g = rast(v, seq.focal, seq.center, boxes[t])
+            g = rast(cache.vertices[i], seq.focal, seq.center, boxes[t])
             cache.uv[i] = g.uv[0].numpy().astype(np.float16)
             cache.mask[i] = g.mask[0, 0].numpy() > 0.5
             cache.mouth[i] = g.mouth[0, 0].numpy() > 0.5
@@ -206,3 +214,47 @@ def build_cache(
     finally:
         rast.close()
     return cache
+
+
+def moved_source(
+    geo: FrameGeometry,
+    source_crop: torch.Tensor,
+    source_box: np.ndarray,
+    source_cam: np.ndarray,
+    source_depth: torch.Tensor,
+    camera: tuple[float, np.ndarray],
+    triangles: torch.Tensor,
+    movable: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A source frame's pixels moved onto the surface of ``geo`` (one rendered crop).
+
+    Args:
+        geo: fragments of the geometry being rendered (``triangle_id``, ``barycentric``).
+        source_crop: ``(3, S, S)`` the source frame's crop at ``source_box``, any value range.
+        source_box: ``(3,)`` crop box of the source frame.
+        source_cam: ``(V, 3)`` the source frame's tracked camera-frame vertices.
+        source_depth: ``(S, S)`` depth buffer of ``source_cam`` rasterized into the source crop.
+        camera: ``(focal, center)`` of the footage.
+        triangles: ``(F, 3)`` int64; movable: ``(F,)`` bool (see :func:`renderer.warp.source_positions`).
+
+    Returns:
+        ``(4, S, S)``: the moved crop (0 where invalid) and its validity; and the source-frame pixel
+        positions ``(S, S, 2)`` and validity ``(S, S)`` (for the full-resolution detail layer).
+    """
+    size = source_crop.shape[-1]
+    focal, center = camera
+    scale, origin = size / float(source_box[2]), source_box[:2] - source_box[2] / 2
+    pixels = torch.from_numpy(pinhole(source_cam, focal, center)).float()
+    pos, valid = source_positions(
+        geo.triangle_id,
+        geo.barycentric,
+        triangles,
+        pixels,
+        torch.from_numpy(np.ascontiguousarray(source_cam[:, 2])).float(),
+        source_depth,
+        (scale, origin),
+        movable,
+    )
+    crop_pos = (pos - torch.as_tensor(origin, dtype=pos.dtype)) * scale
+    moved = sample_pixels(source_crop, crop_pos) * valid
+    return torch.cat([moved, valid[None]]), pos, valid

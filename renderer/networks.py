@@ -19,9 +19,10 @@ from nvp.errors import FormatError
 from renderer import masks
 from renderer.preset import Preset
 
-FORMAT_VERSION = 5  # 2: the interior render is kept inside the mesh; 3: opaque inside the region;
+FORMAT_VERSION = 6  # 2: the interior render is kept inside the mesh; 3: opaque inside the region;
 # 4: the preset records its region_grow (version 3 files were all trained with 0.06 and still load);
-# 5: the compositing network is given the blanked region (versions 3 and 4 load without it)
+# 5: the compositing network is given the blanked region (versions 3 and 4 load without it);
+# 6: the face network may take the footage's moved pixels (Preset.source_input; 3-5 load without them)
 
 
 class NeuralTexture(nn.Module):
@@ -117,6 +118,11 @@ class NeuralRenderer(nn.Module):
     ``region_input``: the compositing network is also given ``region``, so it can tell blanked pixels
     from dark footage (a black suit) and knows where to paint when the region is wider than the mesh (a
     dub covers the footage's own chin as well). Renderers of format 4 and older were trained without it.
+
+    ``source_input``: the face network also takes ``source`` ``(B, 4, H, W)``: a footage frame's pixels
+    moved onto the rendered surface and their validity (:func:`renderer.data.moved_source`); it outputs
+    colour plus a per-pixel weight of the moved pixels, so it can keep them exactly where they are right
+    and paint where they are missing or wrong (the mouth interior, disocclusions).
     """
 
     def __init__(
@@ -125,11 +131,12 @@ class NeuralRenderer(nn.Module):
         texture_channels: int = 16,
         texture_size: int = 256,
         region_input: bool = True,
+        source_input: bool = False,
     ) -> None:
         super().__init__()
-        self.region_input = region_input
+        self.region_input, self.source_input = region_input, source_input
         self.texture = NeuralTexture(texture_channels, texture_size)
-        self.interior = UNet(texture_channels + 2, 3, unet)
+        self.interior = UNet(texture_channels + 2 + 4 * source_input, 3 + source_input, unet)
         self.composite = UNet(7 + int(region_input), 4, unet)
         with torch.no_grad():  # start by passing the background through (opacity ~0.02); learn where to paint
             self.composite.out.bias[3] = -4.0
@@ -141,9 +148,17 @@ class NeuralRenderer(nn.Module):
         mouth: torch.Tensor,
         background: torch.Tensor,
         region: torch.Tensor,
+        source: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         feats = self.texture(uv, mask)
-        interior = self.interior(torch.cat([feats, mask, mouth], 1)) * mask
+        if self.source_input:
+            if source is None:
+                raise ValueError("this renderer needs the moved source pixels (source_input)")
+            out = self.interior(torch.cat([feats, mask, mouth, source], 1))
+            w = out[:, 3:] * source[:, 3:]
+            interior = (w * source[:, :3] + (1 - w) * out[:, :3]) * mask
+        else:
+            interior = self.interior(torch.cat([feats, mask, mouth], 1)) * mask
         extra = [region] if self.region_input else []
         out = self.composite(torch.cat([interior, background, mask, *extra], 1))
         # the second network paints the seam: the ring between the mesh and the untouched footage, as RGB
@@ -170,10 +185,12 @@ def count_parameters(module: nn.Module) -> int:
 
 
 def make_renderer(preset: Preset, region_input: bool = True) -> NeuralRenderer:
+    """A fresh renderer of ``preset``'s size (``region_input`` False only for format 4 and older)."""
     return NeuralRenderer(
         UNetConfig(base=preset.base, dilated=preset.dilated),
         texture_size=preset.texture_size,
         region_input=region_input,
+        source_input=preset.source_input,
     )
 
 
@@ -187,10 +204,10 @@ def save_renderer(net: NeuralRenderer, out_dir: Path, preset: Preset, info: dict
 
 def load_renderer(out_dir: Path, device: str = "cpu") -> tuple[NeuralRenderer, Preset, dict]:
     """A saved renderer in eval mode on ``device``, its preset and its manifest."""
-    art = load_artifact(Path(out_dir) / "renderer.json", "renderer", (3, 4, FORMAT_VERSION))
+    art = load_artifact(Path(out_dir) / "renderer.json", "renderer", (3, 4, 5, FORMAT_VERSION))
     m = art.manifest
     try:
-        preset = Preset(**{"region_grow": 0.06, **m["preset"]})
+        preset = Preset(**{"region_grow": 0.06, "source_input": False, **m["preset"]})
         net = make_renderer(preset, region_input=m["version"] >= 5)
         net.load_state_dict({k: torch.from_numpy(v) for k, v in art.arrays.items()})
     except (TypeError, KeyError, RuntimeError) as e:

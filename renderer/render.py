@@ -11,9 +11,15 @@ import torch
 from nvp.face_model import FaceModel
 from nvp.tracked import TrackedSequence
 from renderer.crop import cut, feather, paste, region_weight
-from renderer.data import FrameGeometry, Rasterizer, blank_face, face_region, sequence_boxes
+from renderer.data import (
+    FrameGeometry,
+    Rasterizer,
+    blank_face,
+    face_region,
+    moved_source,
+    sequence_boxes,
+)
 from renderer.networks import load_renderer
-from renderer.warp import source_positions
 
 LOWER_FACE = 0.02
 """Mouth weight (``FaceModel.mouth_weights``) above which a mesh pixel is part of the re-rendered lower
@@ -91,6 +97,14 @@ class FrameRenderer:
             region, lower = torch.maximum(region, orig.region), torch.maximum(lower, orig.lower)
         img = torch.from_numpy(frame).permute(2, 0, 1).float()
         crop = cut(img[None], torch.from_numpy(box[None]).float(), self.preset.crop) / 255
+        source_in, moved = None, None
+        if self.detail or self.net.source_input:
+            if source is None:  # this very frame under its own tracked geometry
+                cam, src_geo = (vertices_cam, geo) if original_cam is None else (original_cam, orig)
+                source_in, moved = self._moved(geo, img, index, cam, src_geo, crop[0])
+            else:
+                src_img = torch.from_numpy(source[0]).permute(2, 0, 1).float()
+                source_in, moved = self._moved(geo, src_img, source[1], source[2])
         dev = self.device
         _, final = self.net(
             geo.uv.to(dev),
@@ -98,6 +112,7 @@ class FrameRenderer:
             geo.mouth.to(dev),
             blank_face(crop.to(dev), region.to(dev)),
             region.to(dev),
+            source_in[None].to(dev) if self.net.source_input else None,
         )
         # only the lower face (where the geometry can differ from the footage) and its surroundings are
         # pasted: eyes, brows and forehead keep the footage's own pixels at full resolution; around the
@@ -105,27 +120,20 @@ class FrameRenderer:
         # it nothing of the footage's own mouth and chin shows through
         paint = face_region((lower > LOWER_FACE).float(), self.preset.region_grow) * region
         weight = self.weight * region_weight(paint)
-        moved = None
-        if self.detail and source is None:  # this very frame under its own tracked geometry
-            cam, src_geo = (vertices_cam, geo) if original_cam is None else (original_cam, orig)
-            moved = self._moved_detail(geo, img, index, cam, src_geo, crop[0] * 255)
-        elif self.detail:
-            src_img = torch.from_numpy(source[0]).permute(2, 0, 1).float()
-            moved = self._moved_detail(geo, src_img, source[1], source[2])
         out, painted = paste(
             img,
             final[0].cpu() * 255,
             box,
             weight,
             detail=(crop[0] * 255, 1 - paint),
-            moved=moved,
+            moved=moved if self.detail else None,
             paint=paint,
             with_weight=True,
         )
         out = out.clamp(0, 255).round().byte().permute(1, 2, 0).numpy()
         return (out, painted.numpy()) if with_weight else out
 
-    def _moved_detail(
+    def _moved(
         self,
         geo: FrameGeometry,
         src_img: torch.Tensor,
@@ -133,28 +141,21 @@ class FrameRenderer:
         src_cam: np.ndarray,
         src_geo: FrameGeometry | None = None,
         src_crop: torch.Tensor | None = None,
-    ) -> tuple:
-        """The ``moved`` argument of :func:`renderer.crop.paste`: where the surface points of ``geo`` are in
-        the source frame ``src_img`` ``(3, H, W)`` (frame ``src_index`` under ``src_cam`` ``(V, 3)``), and
-        the source's crop-resolution copy; ``src_geo`` / ``src_crop`` when the caller has them already."""
+    ) -> tuple[torch.Tensor, tuple]:
+        """The source frame ``src_img`` ``(3, H, W)`` (frame ``src_index`` under ``src_cam`` ``(V, 3)``)
+        moved onto the surface of ``geo``: the network's ``(4, S, S)`` source input and the ``moved``
+        argument of :func:`renderer.crop.paste`; ``src_geo`` / ``src_crop`` (in [0, 1]) when the caller has
+        them already."""
         src_box = self.boxes[src_index]
         f, c = self.seq.focal, self.seq.center
         if src_geo is None:
             src_geo = self.raster(src_cam, f, c, src_box)
         if src_crop is None:
-            src_crop = cut(src_img[None], torch.from_numpy(src_box[None]).float(), self.preset.crop)[0]
-        scale, origin = self.preset.crop / src_box[2], src_box[:2] - src_box[2] / 2
-        pos, valid = source_positions(
-            geo.triangle_id,
-            geo.barycentric,
-            self._triangles,
-            torch.from_numpy(self.seq.pixels(src_cam)).float(),
-            torch.from_numpy(src_cam[:, 2]).float(),
-            src_geo.depth,
-            (scale, origin),
-            self._movable,
+            src_crop = cut(src_img[None], torch.from_numpy(src_box[None]).float(), self.preset.crop)[0] / 255
+        source_in, pos, valid = moved_source(
+            geo, src_crop, src_box, src_cam, src_geo.depth, (f, c), self._triangles, self._movable
         )
-        return src_img, src_crop, src_box, pos, valid
+        return source_in, (src_img, src_crop * 255, src_box, pos, valid)
 
 
 Geometry = Callable[[int, int, np.ndarray], np.ndarray]

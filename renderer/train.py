@@ -18,7 +18,7 @@ import torch
 from tqdm import tqdm
 
 from nvp.errors import FormatError
-from renderer.data import FrameCache, blank_face
+from renderer.data import FrameCache, Rasterizer, blank_face, moved_source
 from renderer.networks import count_parameters, make_renderer, save_renderer
 from renderer.preset import Preset, get_preset
 
@@ -52,6 +52,10 @@ class RendererTrainConfig:
     """Optional VGG-16 weights file (torchvision layout) for a perceptual term; never downloaded."""
     vgg_weight: float = 0.1
     """Weight of the perceptual term when ``vgg_weights`` is given."""
+    source_gap_s: tuple[float, float] = (0.4, 4.0)
+    """With a preset that feeds the footage's moved pixels to the network (``Preset.source_input``), each
+    training crop takes them from another training frame this many seconds away (at 25 fps), like a dub,
+    whose footage frame shows another mouth."""
     checkpoint_every: int = 250
     """Steps between checkpoints."""
     preview_every: int = 500
@@ -106,6 +110,45 @@ def _preview(path: Path, target: torch.Tensor, interior: torch.Tensor, final: to
     Image.fromarray((row.permute(1, 2, 0).detach().cpu().numpy() * 255).round().astype(np.uint8)).save(path)
 
 
+class SourceSampler:
+    """The moved-source input of a training batch: for each target crop, another cache frame ``gap``
+    seconds away (``cfg.source_gap_s``, assuming 25 fps) moved onto the target's surface."""
+
+    def __init__(self, cache: FrameCache, preset: Preset, gap_s: tuple[float, float]) -> None:
+        from nvp.face_model import default_face_model
+
+        model = default_face_model()
+        self.cache, self.gap = cache, (round(gap_s[0] * 25), round(gap_s[1] * 25))
+        self.raster = Rasterizer(model, preset.crop, preset.region_grow)
+        self.triangles = torch.from_numpy(model.triangles)
+        self.movable = torch.from_numpy(~model.triangle_regions["mouth_interior"])
+
+    def close(self) -> None:
+        self.raster.close()
+
+    def pick(self, i: int, rng: np.random.Generator) -> int:
+        d = np.abs(self.cache.frames - self.cache.frames[i])
+        ok = np.flatnonzero((d >= self.gap[0]) & (d <= self.gap[1]))
+        if len(ok) == 0:
+            ok = np.flatnonzero(d > 0) if len(d) > 1 else np.array([i])
+        return int(rng.choice(ok))
+
+    def __call__(self, idx: np.ndarray, rng: np.random.Generator) -> torch.Tensor:
+        c = self.cache
+        focal, center = float(c.camera[0]), c.camera[1:]
+        out = []
+        for i in idx:
+            j = self.pick(int(i), rng)
+            geo = self.raster(c.vertices[i], focal, center, c.boxes[i])
+            src = self.raster(c.vertices[j], focal, center, c.boxes[j])
+            crop = torch.from_numpy(c.crops[j]).permute(2, 0, 1).float() / 255
+            moved, _, _ = moved_source(
+                geo, crop, c.boxes[j], c.vertices[j], src.depth, (focal, center), self.triangles, self.movable
+            )
+            out.append(moved)
+        return torch.stack(out)
+
+
 def train_renderer(
     cache: FrameCache,
     cfg: RendererTrainConfig,
@@ -125,6 +168,7 @@ def train_renderer(
         )
     steps = cfg.steps or preset.steps
     out_dir.mkdir(parents=True, exist_ok=True)
+    sources = SourceSampler(cache, preset, cfg.source_gap_s) if preset.source_input else None
     torch.manual_seed(cfg.seed)
     net = make_renderer(preset).to(device)
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
@@ -175,7 +219,8 @@ def train_renderer(
         idx = rng.integers(0, n, preset.batch)
         target, geo = cache.batch(idx, device)
         region = mix_regions(geo.region, cache, rng, cfg.region_mix)
-        interior, final = net(geo.uv, geo.mask, geo.mouth, blank_face(target, region), region)
+        source = sources(idx, rng).to(device) if sources is not None else None
+        interior, final = net(geo.uv, geo.mask, geo.mouth, blank_face(target, region), region, source)
         loss = renderer_loss(interior, final, target, geo.mask, cfg)
         if perceptual is not None:
             loss = loss + cfg.vgg_weight * perceptual(final, target)
@@ -197,6 +242,8 @@ def train_renderer(
             running = []
             save_checkpoint()
     bar.close()
+    if sources is not None:
+        sources.close()
     if running:
         log_rows.append({"step": step, "loss": float(np.mean(running)), "seconds": round(elapsed, 1)})
     save_checkpoint()

@@ -134,7 +134,9 @@ def test_person_map_and_predict_commands(demo_clip, tmp_path):
     assert style.feature_kind == "mel" and np.isfinite(style.person_map.matrix).all()
     wav = tmp_path / "speech.wav"
     sf.write(wav, (0.2 * np.random.default_rng(0).standard_normal((48000, 2))).astype(np.float32), 48000)
-    track = tmp_path / "tracks" / demo_clip.path.stem
+    from nvp.app.corpus import cache_key
+
+    track = tmp_path / "tracks" / cache_key(demo_clip.path)
     proc = nvp(
         "predict",
         wav,

@@ -71,3 +71,25 @@ def test_moved_geometry_points_at_the_old_place_and_hidden_or_excluded_points_ar
     # triangles that may not be moved (the mouth interior) are never valid
     _, valid3 = source_positions(*args, src.depth, (1.0, np.zeros(2)), torch.tensor([True, False]))
     assert valid3[r.triangle_id == 1].max() == 0 and valid3[r.triangle_id == 0].min() == 1
+
+
+def test_renderer_with_source_input_keeps_moved_pixels_where_it_trusts_them():
+    from renderer.networks import NeuralRenderer, UNetConfig
+
+    torch.manual_seed(0)
+    net = NeuralRenderer(UNetConfig(base=4, depth=2), texture_size=16, source_input=True)
+    with torch.no_grad():
+        net.interior.out.bias[3] = 50.0  # weight of the moved pixels -> 1
+    s = 32
+    uv = torch.rand(1, s, s, 2)
+    mask = torch.ones(1, 1, s, s)
+    moved = torch.rand(1, 3, s, s)
+    valid = torch.zeros(1, 1, s, s)
+    valid[..., : s // 2] = 1  # left half has moved pixels
+    source = torch.cat([moved * valid, valid], 1)
+    blank, none = torch.zeros(1, 3, s, s), torch.zeros_like(mask)
+    interior, _ = net(uv, mask, none, blank, none, source)
+    torch.testing.assert_close(interior[..., : s // 2], moved[..., : s // 2])
+    assert (interior[..., s // 2 :] - moved[..., s // 2 :]).abs().mean() > 0.1  # painted where invalid
+    with pytest.raises(ValueError, match="moved source"):
+        net(uv, mask, torch.zeros_like(mask), torch.zeros(1, 3, s, s), torch.zeros_like(mask))

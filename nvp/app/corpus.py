@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from nvp.artifact import file_sha256, load_artifact, save_artifact
 from nvp.errors import FormatError
 from nvp.face_model import default_face_model
 from nvp.person import VideoSample
@@ -19,36 +20,43 @@ from nvp.tracked import TrackedSequence
 log = logging.getLogger(__name__)
 
 
+def cache_key(video: Path) -> str:
+    """``<stem>-<first 16 hex digits of the file's sha256>``: two files with the same name never share a
+    cache entry, and an edited file gets a new one."""
+    return f"{video.stem}-{file_sha256(video)[:16]}"
+
+
 def tracked_cached(video: Path, cache: Path, progress: bool = True) -> TrackedSequence:
-    """The video's tracking, computed once and kept in ``cache/tracks/<stem>``."""
+    """The video's tracking, computed once and kept in ``cache/tracks/<key>`` (see :func:`cache_key`); a
+    damaged or outdated entry is recomputed."""
     from tracking.track import track_video
 
-    out = cache / "tracks" / video.stem
-    sha = default_face_model().sha256
-    if (out / "tracked.json").exists():
-        try:
-            seq = TrackedSequence.load(out)
-            if seq.face_model_sha256 == sha:
-                return seq
-        except FormatError:
-            pass
+    out = cache / "tracks" / cache_key(video)
+    try:
+        seq = TrackedSequence.load(out)
+        if seq.face_model_sha256 == default_face_model().sha256:
+            return seq
+    except FormatError:
+        pass
     seq, _ = track_video(video, progress=progress)
     seq.save(out)
     return seq
 
 
 def features_cached(video: Path, cache: Path, kind: str, fps: float, num_frames: int) -> np.ndarray:
-    """Feature windows ``(T, W, D)`` of the video's audio track, kept in ``cache/features``."""
+    """Feature windows ``(T, W, D)`` of the video's audio track, kept in ``cache/features`` (an artifact:
+    written atomically; a damaged entry is recomputed)."""
     from nvp.audio_features import features_from_file, speaker_normalized
     from nvp.windows import frame_windows
 
-    path = cache / "features" / f"{video.stem}_{kind}_{fps:.3f}_{num_frames}_sn.npy"
-    if path.exists():
-        return np.load(path)
+    path = cache / "features" / f"{cache_key(video)}_{kind}_{fps:.3f}_{num_frames}_sn.json"
+    try:
+        return load_artifact(path, "feature_windows", 1).arrays["windows"]
+    except (FormatError, KeyError):
+        pass
     feats = speaker_normalized(features_from_file(video, kind=kind))
     windows = frame_windows(feats, fps, num_frames=num_frames).astype(np.float32)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    np.save(path, windows)
+    save_artifact(path, "feature_windows", 1, {"windows": windows}, {"video": video.name, "kind": kind})
     return windows
 
 

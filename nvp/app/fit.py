@@ -16,8 +16,9 @@ from pathlib import Path
 import numpy as np
 
 from nvp import __version__
+from nvp.artifact import atomic_path
 from nvp.bundle import BundleBuilder, PersonBundle
-from nvp.errors import MediaError
+from nvp.errors import MediaError, NvpError
 from nvp.tracked import TrackedSequence
 
 log = logging.getLogger(__name__)
@@ -39,6 +40,14 @@ class FitConfig:
     """Torch device for renderer training (``cpu`` or ``cuda``)."""
     vgg_weights: str | None = None
     """Optional VGG-16 weights file for a perceptual renderer loss (see ``renderer.perceptual``)."""
+    min_seconds: float = 1.0
+    """Shortest target video accepted; below ``warn_seconds`` nvp warns (1-3 minutes of speech are
+    recommended: the style and the renderer learn from every frame)."""
+    warn_seconds: float = 20.0
+    """Targets shorter than this fit, with a warning that the result will be poor."""
+
+
+GOOD_TARGET = "a good target shows one person facing the camera, talking for 1-3 minutes, with sound"
 
 
 def _stage(name: str) -> float:
@@ -57,21 +66,37 @@ def fit(
     """Build a person bundle from a talking-head video (1-3 minutes recommended).
 
     ``tracked``: the video's tracking when the caller already has it (skips the tracking stage)."""
+    from nvp.bundle import check_output_folder, finished_bundle, input_hash
     from nvp.media import probe_video
 
     video, out = Path(video), Path(out)
+    check_output_folder(out, inputs=(video,))
     info = probe_video(video)
     if not info.has_audio:
-        raise MediaError(
-            f"{video} has no audio track: nvp fit needs the person's speech to learn their style"
-        )
-    builder = BundleBuilder(out, {k: v for k, v in asdict(cfg).items() if k not in ("device", "vgg_weights")})
+        raise MediaError(f"{video} has no audio track: nvp fit needs the person's speech ({GOOD_TARGET})")
+    if info.duration_s < cfg.min_seconds:
+        raise NvpError(f"{video} lasts only {info.duration_s:.1f} s; {GOOD_TARGET}")
+    if info.duration_s < cfg.warn_seconds:
+        log.warning("%s lasts only %.1f s: expect a poor person (%s)", video, info.duration_s, GOOD_TARGET)
+    _check_speech(video)
+    config = {
+        k: v
+        for k, v in asdict(cfg).items()
+        if k not in ("device", "vgg_weights", "min_seconds", "warn_seconds")
+    }
+    sha = input_hash(video)
+    done = finished_bundle(out, config, sha)
+    if done is not None:
+        log.warning("%s is already fitted from %s with these settings; reusing it", out, video.name)
+        return done
+    builder = BundleBuilder(out, config, sha)
+    if builder.restarted:
+        log.warning("%s held an interrupted fit of another video; starting again", builder.work)
 
     if not builder.done("target"):
         t0 = _stage("copy target")
-        tmp = builder.path("target").with_suffix(".tmp.mp4")
-        shutil.copyfile(video, tmp)
-        tmp.replace(builder.path("target"))
+        with atomic_path(builder.path("target")) as tmp:
+            shutil.copyfile(video, tmp)
         builder.mark_done("target", source=str(video), seconds=round(time.perf_counter() - t0, 2))
 
     if not builder.done("track"):
@@ -130,6 +155,16 @@ def fit(
             },
         }
     )
+
+
+def _check_speech(video: Path) -> None:
+    """Refuse a target whose soundtrack holds no speech (a style solved from silence is meaningless)."""
+    from nvp.media import read_audio
+    from nvp.vad import speech_activity
+
+    audio = read_audio(video, 16000)
+    if len(audio) == 0 or not speech_activity(audio, 16000):
+        raise NvpError(f"{video}: no speech found in its soundtrack; {GOOD_TARGET}")
 
 
 def _train_renderer(builder: BundleBuilder, cfg: FitConfig, progress: bool) -> None:

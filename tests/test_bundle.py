@@ -1,0 +1,183 @@
+"""Person bundles and `nvp fit` never lose data, resume only the same input, and survive kills and damage."""
+
+from __future__ import annotations
+
+import errno
+import shutil
+
+import numpy as np
+import pytest
+import soundfile as sf
+from test_cli import assert_one_line_error, nvp
+
+from nvp.bundle import PersonBundle, partial_dir, recover, replaced_dir
+from nvp.errors import FormatError, NvpError
+
+
+@pytest.fixture(scope="module")
+def fitted(demo_clip, tmp_path_factory):
+    """A tiny finished bundle (2 renderer steps), copied by the tests that damage it."""
+    from nvp.app.fit import FitConfig, fit
+
+    out = tmp_path_factory.mktemp("bundle") / "person"
+    return fit(demo_clip.path, out, FitConfig(steps=2), progress=False).root
+
+
+def copy_of(bundle, tmp_path, name="p"):
+    dst = tmp_path / name
+    shutil.copytree(bundle, dst)
+    return dst
+
+
+def clip_with_audio(path, frames, audio, rate=16000, size=64, seed=0):
+    """A faceless clip (noise frames) with the given audio."""
+    from nvp.media import VideoWriter
+
+    rng = np.random.default_rng(seed)
+    with VideoWriter(path, 25, size, size, audio=audio, audio_rate=rate) as w:
+        for _ in range(frames):
+            w.write(rng.integers(0, 255, (size, size, 3), dtype=np.uint8))
+    return path
+
+
+def test_fit_refuses_a_foreign_folder_and_keeps_its_contents(demo_clip, tmp_path):
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "thesis.txt").write_text("years of work")
+    assert_one_line_error(nvp("fit", demo_clip.path, "-o", out, "--steps", 1), "not empty")
+    assert (out / "thesis.txt").read_text() == "years of work" and sorted(p.name for p in out.iterdir()) == [
+        "thesis.txt"
+    ]
+
+
+def test_fit_refuses_to_write_over_its_input_or_a_file(demo_clip, tmp_path):
+    video = tmp_path / "v.mp4"
+    shutil.copyfile(demo_clip.path, video)
+    before = video.read_bytes()
+    assert_one_line_error(nvp("fit", video, "-o", video, "--steps", 1), "input video")
+    assert video.read_bytes() == before and not (tmp_path / "v.mp4.old").exists()
+    notes = tmp_path / "notes.txt"
+    notes.write_text("x")
+    assert_one_line_error(nvp("fit", video, "-o", notes, "--steps", 1), "is a file")
+    assert notes.read_text() == "x"
+
+
+def test_resume_restarts_when_the_input_changed(demo_clip, tmp_path, monkeypatch):
+    from nvp.app import fit as app_fit
+    from nvp.app.demo_clip import make_demo_clip
+
+    other = make_demo_clip(tmp_path / "b.mp4", seconds=1.2, size=256, seed=7).path
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(app_fit, "_train_renderer", interrupted)
+    cfg = app_fit.FitConfig(steps=2)
+    with pytest.raises(KeyboardInterrupt):
+        app_fit.fit(demo_clip.path, tmp_path / "p", cfg, progress=False)
+    monkeypatch.undo()
+    bundle = app_fit.fit(other, tmp_path / "p", cfg, progress=False)
+    assert bundle.manifest["target"]["source"] == str(other)
+    assert (bundle.root / "target.mp4").read_bytes() == other.read_bytes()
+    from nvp.bundle import input_hash
+
+    assert bundle.manifest["input_sha256"] == input_hash(other) != input_hash(demo_clip.path)
+
+
+def test_a_faceless_fit_does_not_poison_the_next_one(demo_clip, tmp_path):
+    from nvp.app.demo_voice import AUDIO_RATE, speech_script, synth_voice
+
+    rng = np.random.default_rng(0)
+    voice = synth_voice(speech_script(2.0, rng), 2.0, rng)
+    faceless = clip_with_audio(tmp_path / "wall.mp4", 50, voice, AUDIO_RATE)
+    assert_one_line_error(nvp("fit", faceless, "-o", tmp_path / "p", "--steps", 1), "face")
+    proc = nvp("fit", demo_clip.path, "-o", tmp_path / "p", "--steps", 1)
+    assert proc.returncode == 0, proc.stderr
+    assert PersonBundle.load(tmp_path / "p").manifest["target"]["source"] == str(demo_clip.path)
+
+
+def test_fit_refuses_silence_and_too_short_videos(demo_clip, tmp_path):
+    silent = clip_with_audio(tmp_path / "silent.mp4", 50, np.zeros(32000, np.float32))
+    assert_one_line_error(nvp("fit", silent, "-o", tmp_path / "p", "--steps", 1), "no speech", "1-3 minutes")
+    rng = np.random.default_rng(0)
+    short = clip_with_audio(tmp_path / "short.mp4", 12, 0.3 * rng.standard_normal(8000).astype(np.float32))
+    assert_one_line_error(nvp("fit", short, "-o", tmp_path / "q", "--steps", 1), "lasts only 0.5 s")
+    assert not (tmp_path / "p").exists() and not (tmp_path / "q").exists()
+
+
+def test_fitting_again_reuses_a_finished_bundle(fitted, demo_clip, tmp_path, monkeypatch):
+    import tracking.track
+    from nvp.app.fit import FitConfig, fit
+
+    p = copy_of(fitted, tmp_path)
+
+    def no_work(*a, **k):
+        raise AssertionError("a finished fit must not be repeated")
+
+    monkeypatch.setattr(tracking.track, "track_video", no_work)
+    assert fit(demo_clip.path, p, FitConfig(steps=2), progress=False).root == p
+
+
+@pytest.mark.parametrize("member", ["tracked/tracked.npz", "style.npz", "renderer/renderer.npz"])
+@pytest.mark.parametrize("damage", ["truncate", "empty"])
+def test_a_damaged_bundle_is_reported_not_crashed_on(fitted, tmp_path, member, damage):
+    p = copy_of(fitted, tmp_path)
+    f = p / member
+    data = f.read_bytes()
+    f.write_bytes(data[: len(data) // 2] if damage == "truncate" else b"")
+    with pytest.raises(FormatError, match="damaged"):
+        PersonBundle.load(p)
+    assert_one_line_error(nvp("info", p), "damaged")
+    wav = tmp_path / "s.wav"
+    sf.write(wav, 0.3 * np.random.default_rng(0).standard_normal(16000).astype(np.float32), 16000)
+    assert_one_line_error(nvp("dub", wav, "--person", p, "-o", tmp_path / "x.mp4"), "damaged")
+    assert not (tmp_path / "x.mp4").exists()
+
+
+def test_every_interrupted_publish_is_finished_by_the_next_run(fitted, tmp_path):
+    # killed after bundle.json was written into the partial folder, before the swap (old bundle in place)
+    root = copy_of(fitted, tmp_path, "p")
+    new = copy_of(fitted, tmp_path, "p.partial")
+    (new / "marker").write_text("new")
+    recover(root)
+    assert (root / "marker").exists() and not partial_dir(root).exists() and not replaced_dir(root).exists()
+    # killed after the old bundle was moved aside, before the new one was renamed
+    root2 = tmp_path / "q"
+    copy_of(fitted, tmp_path, "q.replaced")
+    (copy_of(fitted, tmp_path, "q.partial") / "marker").write_text("new")
+    PersonBundle.load(root2)
+    assert (root2 / "marker").exists() and not replaced_dir(root2).exists()
+    # killed while the old bundle was being removed: half of it left
+    old = copy_of(fitted, tmp_path, "q.replaced")
+    shutil.rmtree(old / "renderer")
+    recover(root2)
+    assert not old.exists() and PersonBundle.load(root2)
+
+
+def test_disk_full_while_fitting_says_so(demo_clip, tmp_path, monkeypatch):
+    from nvp.app import fit as app_fit
+
+    def full(src, dst, *a, **k):
+        with open(dst, "wb") as f:
+            f.write(b"x" * 10)
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(app_fit.shutil, "copyfile", full)
+    with pytest.raises(NvpError, match="disk full while writing .*target.mp4"):
+        app_fit.fit(demo_clip.path, tmp_path / "p", app_fit.FitConfig(steps=1), progress=False)
+    assert not list((tmp_path / "p.partial").glob(".*tmp*"))  # no half-written file left
+
+
+def test_caches_are_keyed_by_content_and_damaged_entries_recomputed(demo_clip, tmp_path):
+    from nvp.app.corpus import cache_key, features_cached
+
+    a, b = tmp_path / "a", tmp_path / "b"
+    a.mkdir(), b.mkdir()
+    shutil.copyfile(demo_clip.path, a / "talk.mp4")
+    with open(b / "talk.mp4", "wb") as f:
+        f.write(demo_clip.path.read_bytes() + b"\0")  # same name, other content
+    assert cache_key(a / "talk.mp4") != cache_key(b / "talk.mp4")
+    w = features_cached(a / "talk.mp4", tmp_path / "cache", "mel", 25.0, 30)
+    (npz,) = (tmp_path / "cache" / "features").glob("*.npz")
+    npz.write_bytes(npz.read_bytes()[:100])  # a kill while it was written (before artifacts were atomic)
+    np.testing.assert_array_equal(features_cached(a / "talk.mp4", tmp_path / "cache", "mel", 25.0, 30), w)
