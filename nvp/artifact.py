@@ -92,6 +92,23 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
         raise
 
 
+def check_output_file(path: str | os.PathLike[str], inputs: tuple = ()) -> Path:
+    """Check, before any work, that ``path`` can be written as an output file: it is none of the
+    ``inputs``, not a folder, and its folder (or the nearest existing parent) is writable."""
+    path = Path(path)
+    for i in inputs:
+        if Path(i).exists() and path.exists() and path.resolve() == Path(i).resolve():
+            raise NvpError(f"the output {path} is also an input; choose another output name")
+    if path.is_dir():
+        raise NvpError(f"the output {path} is a folder; give a file name (e.g. {path / 'out.mp4'})")
+    parent = path.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
+        raise NvpError(f"cannot write {path}: the folder {parent} is not writable")
+    return path
+
+
 def write_json(path: str | os.PathLike[str], data: dict) -> Path:
     """Write ``data`` as indented JSON atomically."""
     path = Path(path)

@@ -25,6 +25,7 @@ import av
 import numpy as np
 from av.video.reformatter import ColorRange, Colorspace, VideoReformatter
 
+from nvp.artifact import DiskFullError, is_disk_full
 from nvp.errors import MediaError
 
 logger = logging.getLogger(__name__)
@@ -266,6 +267,16 @@ def _probe_stream(p: str, container: Any, stream: Any, scan: tuple[list[int], li
         n_source = count
     if duration <= 0 or n_source == 0:
         raise MediaError(f"cannot read video '{p}': the video stream has no frames")
+    announced = int(stream.frames or 0)
+    if announced > 1 and n_source < 0.97 * announced - 1:
+        logger.warning(
+            "'%s' holds %d video frames but its container announces %d: the file looks cut short; "
+            "reading the %d that are there",
+            p,
+            n_source,
+            announced,
+            n_source,
+        )
 
     mean_rate = Fraction(n_source) / duration
     fps = mean_rate.limit_denominator(100_000)
@@ -498,8 +509,7 @@ def read_audio(
     Args:
         path: audio or video file.
         sample_rate: output rate in Hz; None keeps the stream's own rate (see :func:`audio_rate`).
-        mono: average the channels (default); False keeps mono or stereo as they are (more than two
-            channels are averaged to mono).
+        mono: average the channels (default); False keeps the channels as they are.
 
     Returns:
         ``float32`` array of shape ``(num_samples,)`` (mono) or ``(num_samples, channels)``, values in
@@ -516,7 +526,7 @@ def read_audio(
     def collect(frames: list[Any]) -> None:
         for f in frames:
             planes = f.to_ndarray()  # planar float: (channels, samples)
-            if mono or planes.shape[0] > 2:
+            if mono:
                 planes = planes[:1] if planes.shape[0] == 1 else planes.mean(axis=0, dtype=np.float32)[None]
             chunks.append(planes.T)
 
@@ -575,15 +585,17 @@ class VideoWriter:
             for frame in frames:
                 w.write(frame)
 
-    Everything is written to a hidden temporary file next to ``path`` (``.<name>.<random>.tmp.mp4``),
+    Everything is written to a hidden temporary file next to ``path`` (``.<name>.nvp-<pid>-<n>.tmp.mp4``),
     which is moved onto ``path`` only when :meth:`close` succeeds. If the ``with`` block raises (or
-    :meth:`abort` is called) the temporary file is deleted and ``path`` is left untouched.
+    :meth:`abort` is called) the temporary file is deleted and ``path`` is left untouched; the temporary
+    file of a writer that was killed (its process gone) is removed by the next writer to the same path.
+    A full disk is reported as :class:`nvp.artifact.DiskFullError` ("disk full while writing PATH").
 
     Video is H.264 (libx264, yuv420p, BT.709 tagged, preset ``veryfast``). yuv420p needs even
     dimensions: an odd ``width``/``height`` is padded to the next even number by repeating the last
     column/row, so the file is up to one pixel wider/taller than the frames given.
 
-    Audio (``float`` in ``[-1, 1]``, shape ``(n,)`` mono or ``(n, channels)`` with 1 or 2 channels, at
+    Audio (``float`` in ``[-1, 1]``, shape ``(n,)`` mono or ``(n, channels)`` with 1 to 8 channels, at
     ``audio_rate`` Hz) is AAC-encoded, interleaved with the video as frames arrive, and trimmed or
     zero-padded to the video duration ``num_frames / fps``.
 
@@ -621,7 +633,10 @@ class VideoWriter:
 
         target = Path(self.path)
         suffix = target.suffix or ".mp4"
-        self._tmp = str(target.with_name(f".{target.stem}.{secrets.token_hex(4)}.tmp{suffix}"))
+        _remove_stale_temporaries(target, suffix)
+        self._tmp = str(
+            target.with_name(f".{target.stem}.nvp-{os.getpid()}-{secrets.token_hex(4)}.tmp{suffix}")
+        )
         options = (
             {"movflags": "+faststart+use_metadata_tags"} if suffix.lower() in (".mp4", ".mov", ".m4v") else {}
         )
@@ -649,7 +664,7 @@ class VideoWriter:
             self._astream = None
             if self._audio is not None:
                 channels = self._audio.shape[0]
-                layout = "mono" if channels == 1 else "stereo"
+                layout = AUDIO_LAYOUTS[channels]
                 self._astream = self._container.add_stream("aac", rate=self._audio_rate, layout=layout)
                 self._astream.bit_rate = 64000 * channels
                 self._astream.codec_context.time_base = Fraction(1, self._audio_rate)
@@ -715,15 +730,13 @@ class VideoWriter:
                 end = int(Fraction(self.num_frames * self._audio_rate) / self.fps)
                 self._write_audio(end, final=False)
         except _AV_ERRORS as exc:
-            raise MediaError(
-                f"cannot write video '{self.path}': encoding frame {self.num_frames} failed ({exc})"
-            ) from exc
+            self._raise_write_error(exc, f"encoding frame {self.num_frames} failed")
 
     def _write_audio(self, end: int, final: bool) -> None:
         """Encode audio samples up to sample index ``end`` (zero-padding past the input's end)."""
         assert self._audio is not None and self._astream is not None
         channels, available = self._audio.shape
-        layout = "mono" if channels == 1 else "stereo"
+        layout = AUDIO_LAYOUTS[channels]
         while self._audio_pos < end:
             n = min(_AAC_FRAME_SIZE, end - self._audio_pos)
             if n < _AAC_FRAME_SIZE and not final:
@@ -768,10 +781,16 @@ class VideoWriter:
             self._container.close()
             self._closed = True
             os.replace(self._tmp, self.path)
-        except (*_AV_ERRORS, ValueError) as exc:
+        except (*_AV_ERRORS, ValueError, OSError) as exc:
             self.abort()
-            raise MediaError(f"cannot write video '{self.path}': finishing the file failed ({exc})") from exc
+            self._raise_write_error(exc, "finishing the file failed")
         logger.debug("wrote %s: %d frames at %s fps", self.path, self.num_frames, self.fps)
+
+    def _raise_write_error(self, exc: BaseException, what: str) -> None:
+        if is_disk_full(exc):
+            self.abort()
+            raise DiskFullError(f"disk full while writing {self.path}") from exc
+        raise MediaError(f"cannot write video '{self.path}': {what} ({exc})") from exc
 
     def abort(self) -> None:
         """Discard everything written so far: close and delete the temporary file; ``path`` is untouched."""
@@ -789,15 +808,31 @@ class VideoWriter:
             logger.warning("could not delete temporary file %s", self._tmp, exc_info=True)
 
 
+AUDIO_LAYOUTS = {1: "mono", 2: "stereo", 3: "2.1", 4: "quad", 5: "5.0", 6: "5.1", 7: "6.1", 8: "7.1"}
+"""AAC channel layouts the writer uses for 1 to 8 channels (FFmpeg's standard layouts)."""
+
+
+def _remove_stale_temporaries(target: Path, suffix: str) -> None:
+    """Delete ``.<name>.nvp-<pid>-*.tmp<suffix>`` files beside ``target`` whose writer process is gone."""
+    for tmp in target.parent.glob(f".{target.stem}.nvp-*.tmp{suffix}"):
+        try:
+            pid = int(tmp.name.split(".nvp-", 1)[1].split("-", 1)[0])
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            tmp.unlink(missing_ok=True)
+        except (ValueError, IndexError, PermissionError):
+            continue
+
+
 def _prepare_audio(audio: np.ndarray) -> np.ndarray:
     """Writer audio as float32 ``(channels, samples)`` in [-1, 1]."""
     a = np.asarray(audio)
     if a.ndim == 1:
         a = a[None, :]
-    elif a.ndim == 2 and a.shape[1] in (1, 2):
+    elif a.ndim == 2 and a.shape[1] in AUDIO_LAYOUTS:
         a = a.T
     else:
-        raise ValueError(f"audio shape mismatch: expected (n,) or (n, 1|2), found {a.shape}")
+        raise ValueError(f"audio shape mismatch: expected (n,) or (n, 1..8 channels), found {a.shape}")
     if np.issubdtype(a.dtype, np.integer):
         a = a.astype(np.float32) / float(np.iinfo(a.dtype).max)
     return np.ascontiguousarray(np.clip(a.astype(np.float32, copy=False), -1.0, 1.0))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from fractions import Fraction
 from pathlib import Path
 
@@ -344,3 +345,46 @@ def test_decode_error_names_frame_index(clip: Path, monkeypatch: pytest.MonkeyPa
     with pytest.raises(MediaError, match="at output frame 3 of 10"):
         for _ in frames:
             pass
+
+
+def test_a_file_cut_short_is_read_with_a_warning(tmp_path, caplog):
+    path = tmp_path / "full.mp4"
+    rng = np.random.default_rng(0)
+    with media.VideoWriter(path, 25, 64, 64) as w:  # faststart: the index sits at the start of the file
+        for _ in range(100):
+            w.write(rng.integers(0, 255, (64, 64, 3), dtype=np.uint8))
+    cut = tmp_path / "cut.mp4"
+    data = path.read_bytes()
+    cut.write_bytes(data[: int(len(data) * 0.4)])
+    with caplog.at_level(logging.WARNING, logger="nvp.media"):
+        frames = list(media.iter_frames(cut))
+    assert 0 < len(frames) < 100
+    assert any("cut short" in r.getMessage() and "announces 100" in r.getMessage() for r in caplog.records)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="nvp.media"):
+        media.probe_video(path)
+    assert not caplog.records  # an intact file is read without a word
+
+
+def test_disk_full_while_writing_a_video_names_the_file(tmp_path, monkeypatch):
+    import errno
+
+    from nvp.artifact import DiskFullError
+
+    out = tmp_path / "out.mp4"
+    w = media.VideoWriter(out, 25, 32, 32)
+
+    class FullDisk:  # the real container, whose writes fail as on a full disk
+        def __init__(self, container):
+            self.container = container
+
+        def mux(self, *a, **k):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+        def __getattr__(self, name):
+            return getattr(self.container, name)
+
+    monkeypatch.setattr(w, "_container", FullDisk(w._container))
+    with pytest.raises(DiskFullError, match=f"disk full while writing {out}"):
+        w.write(np.zeros((32, 32, 3), np.uint8))
+    assert not out.exists() and not list(tmp_path.glob(".*tmp*"))

@@ -41,11 +41,11 @@ def test_fit_writes_a_complete_bundle(bundle):
     assert proc.returncode == 0 and "renderer preset: cpu" in proc.stdout, proc.stderr
 
 
-@pytest.mark.parametrize(("seconds", "channels"), [(0.8, 1), (1.7, 2)])
+@pytest.mark.parametrize(("seconds", "channels"), [(0.8, 1), (1.7, 2), (0.8, 6)])
 def test_dub_lasts_as_long_as_the_audio_and_is_marked(bundle, demo_clip, tmp_path, seconds, channels):
     audio = speechlike(seconds)
-    if channels == 2:
-        audio = np.stack([audio, 0.5 * audio], 1)
+    if channels > 1:
+        audio = np.stack([audio * (1 - 0.1 * c) for c in range(channels)], 1)
     wav = tmp_path / "speech.wav"
     sf.write(wav, audio, 22050)
     out = tmp_path / "dub.mp4"
@@ -56,7 +56,7 @@ def test_dub_lasts_as_long_as_the_audio_and_is_marked(bundle, demo_clip, tmp_pat
     assert abs(info.num_frames - seconds * fps) <= 1  # longer than the 1.2 s target: ping-pong
     assert (info.width, info.height) == (256, 256) and info.audio_sample_rate == 22050
     back = read_audio(out, None, mono=False)
-    assert back.ndim == (1 if channels == 1 else 2)
+    assert back.ndim == (1 if channels == 1 else 2) and (channels == 1 or back.shape[1] == channels)
     proc = nvp("verify", out)
     assert proc.returncode == 0 and "SYNTHETIC" in proc.stdout
     assert nvp("verify", demo_clip.path).returncode == 0  # the demo target is synthetic too
@@ -161,6 +161,81 @@ def test_eval_needs_audio_and_enough_frames(tmp_path, demo_clip):
     assert_one_line_error(proc, "held-out part is only")
     # several videos: each failure is one line, the others still run, and the exit code says so
     proc = nvp("eval", path, demo_clip.path, "-o", tmp_path / "e3", "--steps", 1)
-    assert proc.returncode == 1 and "Traceback" not in proc.stderr
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
     assert "no audio" in proc.stderr and "held-out part is only" in proc.stderr
     assert not (tmp_path / "e3" / "results.md").exists()
+
+
+def test_dub_checks_its_output_before_any_work(bundle, tmp_path, monkeypatch):
+    from nvp import artifact
+    from nvp.app.cli import main
+
+    audio = tmp_path / "speech.wav"
+    sf.write(audio, speechlike(0.8), 22050)
+    before = audio.read_bytes()
+    assert_one_line_error(nvp("dub", audio, "--person", bundle, "-o", audio), "also an input")
+    assert audio.read_bytes() == before
+    folder = tmp_path / "already_a_folder"
+    folder.mkdir()
+    assert_one_line_error(nvp("dub", audio, "--person", bundle, "-o", folder), "is a folder")
+    # a read-only folder (simulated: root may write anywhere): one line, nothing rendered
+    monkeypatch.setattr(artifact.os, "access", lambda *a: False)
+    monkeypatch.setattr("nvp.app.dub.PersonBundle.load", lambda *a, **k: pytest.fail("work before the check"))
+    assert main(["-q", "dub", str(audio), "--person", str(bundle), "-o", str(tmp_path / "ro" / "x.mp4")]) == 2
+
+
+def test_predict_into_a_folder_leaves_no_temporary_file(bundle, tmp_path):
+    audio = tmp_path / "speech.wav"
+    sf.write(audio, speechlike(0.8), 22050)
+    out = tmp_path / "out"
+    out.mkdir()
+    proc = nvp("predict", audio, "--style", bundle / "style.json", "-o", out)
+    assert_one_line_error(proc, "is a folder")
+    assert not list(tmp_path.rglob(".*tmp*"))
+
+
+def test_a_killed_dub_leaves_no_temporary_file_behind(bundle, tmp_path):
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    audio = tmp_path / "speech.wav"
+    sf.write(audio, speechlike(6.0), 22050)
+    out = tmp_path / "dub.mp4"
+    cmd = [
+        sys.executable,
+        "-m",
+        "nvp.app.cli",
+        "-q",
+        "dub",
+        str(audio),
+        "--person",
+        str(bundle),
+        "-o",
+        str(out),
+    ]
+    p = subprocess.Popen(cmd)
+    deadline = time.time() + 60
+    while not list(tmp_path.glob(".dub.nvp-*.tmp.mp4")) and time.time() < deadline and p.poll() is None:
+        time.sleep(0.05)
+    os.kill(p.pid, signal.SIGKILL)
+    p.wait()
+    assert list(tmp_path.glob(".dub.nvp-*.tmp.mp4")), "the dub ended before it could be killed"
+    proc = nvp("dub", audio, "--person", bundle, "-o", out)
+    assert proc.returncode == 0, proc.stderr
+    assert out.exists() and not list(tmp_path.glob(".dub*tmp*"))
+
+
+def test_an_error_under_a_progress_bar_gets_a_line_of_its_own(capsys):
+    from tqdm import tqdm
+
+    from nvp.app.cli import _fail
+
+    bar = tqdm(total=10, desc="dub")
+    bar.update(3)
+    assert _fail("dub", "error: boom", 2) == 2
+    err = capsys.readouterr().err
+    assert "\nnvp dub: error: boom\n" in err  # the bar's line was ended first
+    assert bar.disable or bar.n == 3

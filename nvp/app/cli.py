@@ -99,12 +99,14 @@ def _cmd_person_map(args: argparse.Namespace) -> int:
 def _cmd_predict(args: argparse.Namespace) -> int:
     import numpy as np
 
+    from nvp.artifact import atomic_path, check_output_file
     from nvp.audio2exp import default_audio2exp
     from nvp.errors import NvpError
     from nvp.face_model import default_face_model
     from nvp.media import read_audio
     from nvp.person import PersonStyle, predict_expressions
 
+    path = check_output_file(args.output, inputs=(args.audio, args.style))
     style = PersonStyle.load(Path(args.style))
     net, manifest = default_audio2exp(style.feature_kind)
     if manifest["sha256"] != style.audio2exp_sha256:
@@ -119,10 +121,8 @@ def _cmd_predict(args: argparse.Namespace) -> int:
         model = default_face_model()
         out["vertices"] = model.vertices(seq.identity, expr).astype(np.float32)
         out["triangles"] = model.triangles
-    path = Path(args.output)
-    tmp = path.with_name(f".{path.stem}.tmp.npz")
-    np.savez_compressed(tmp, **out)
-    tmp.replace(path)
+    with atomic_path(path) as tmp:
+        np.savez_compressed(tmp, **out)
     print(f"{len(expr)} frames of expressions at {args.fps} fps → {path}")
     return 0
 
@@ -164,12 +164,14 @@ def _cmd_train_renderer(args: argparse.Namespace) -> int:
 def _cmd_render(args: argparse.Namespace) -> int:
     import numpy as np
 
+    from nvp.artifact import check_output_file
     from nvp.face_model import default_face_model
     from nvp.media import VideoWriter, audio_rate, has_audio, iter_frames, read_audio
     from nvp.provenance import synthetic_mark
     from nvp.tracked import TrackedSequence
     from renderer.render import FrameRenderer, render_frames
 
+    check_output_file(args.output, inputs=(args.video,))
     seq = TrackedSequence.load(args.track_dir)
     start = args.start_frame
     n = seq.num_frames - start if args.frames is None else min(args.frames, seq.num_frames - start)
@@ -309,7 +311,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
             )
     if several and rows:
         print(write_results(rows, root))
-    return 1 if failed else 0
+    return 2 if failed else 0
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -463,14 +465,25 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return args.func(args)
     except NvpError as e:
-        print(f"nvp {args.command}: error: {e}", file=sys.stderr)
-        return 2
+        return _fail(args.command, f"error: {e}", 2)
     except KeyboardInterrupt:
-        print(f"nvp {args.command}: interrupted", file=sys.stderr)
-        return 130
-    except OSError as e:  # disk full, permissions, ...
-        print(f"nvp {args.command}: error: {e.strerror or e} ({e.filename or ''})", file=sys.stderr)
-        return 2
+        return _fail(args.command, "interrupted", 130)
+    except OSError as e:  # permissions, a vanished file, a full disk outside nvp's own writers, ...
+        from nvp.artifact import is_disk_full
+
+        where = e.filename or "a file"
+        what = f"disk full while writing {where}" if is_disk_full(e) else f"{e.strerror or e}: {where}"
+        return _fail(args.command, f"error: {what}", 2)
+
+
+def _fail(command: str, message: str, code: int) -> int:
+    """Print the one error line on a line of its own (closing any progress bar first)."""
+    tqdm = sys.modules.get("tqdm")
+    if tqdm is not None:
+        for bar in list(getattr(tqdm.tqdm, "_instances", ())):
+            bar.close()
+    print(f"nvp {command}: {message}", file=sys.stderr)
+    return code
 
 
 if __name__ == "__main__":

@@ -64,6 +64,7 @@ def dub(
 ) -> DubResult:
     """Make the person of ``bundle_dir`` say ``audio_path``; writes an mp4 as long as the audio (±1 frame),
     with the input audio at its own sample rate and channels."""
+    from nvp.artifact import check_output_file
     from nvp.audio2exp import default_audio2exp
     from nvp.face_model import default_face_model
     from nvp.media import VideoWriter, audio_rate, frames_at, read_audio
@@ -75,6 +76,7 @@ def dub(
     from renderer.render import FrameRenderer, render_frames
 
     t_start = time.perf_counter()
+    check_output_file(output, inputs=(audio_path,))
     bundle = PersonBundle.load(bundle_dir)
     rate = audio_rate(audio_path)
     original = read_audio(audio_path, None, mono=False)

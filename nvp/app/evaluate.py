@@ -93,6 +93,7 @@ def evaluate_video(
     from nvp.media import VideoWriter, audio_rate, iter_frames, probe_video, read_audio
     from nvp.metrics import psnr, ssim
     from nvp.person import PersonStyle, predict_expressions
+    from nvp.provenance import synthetic_mark
     from nvp.tracked import TrackedSequence
     from renderer.crop import box_slices
     from renderer.render import FrameRenderer, render_frames
@@ -140,7 +141,8 @@ def evaluate_video(
     detectors = {k: LandmarkDetector() for k in kinds}
     side = None
     if cfg.side_by_side:
-        side = VideoWriter(out / "side_by_side.mp4", seq.fps, 3 * seq.width, seq.height)
+        tags = synthetic_mark("eval-side-by-side", video=video.name)
+        side = VideoWriter(out / "side_by_side.mp4", seq.fps, 3 * seq.width, seq.height, metadata=tags)
     weights = model.mouth_weights()
 
     def spoken(j: int, t: int, tracked: np.ndarray) -> np.ndarray:
