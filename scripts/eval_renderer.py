@@ -24,7 +24,9 @@ SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "video"
 DEFAULT_VIDEOS = ["dfrf__cnn2_25fps.mp4", "mimictalk__German_20s.mp4", "styletalk__Obama_clip2_av.mp4"]
 
 
-def evaluate(video: Path, out: Path, preset: str, budget_min: float, cache_dir: Path) -> dict:
+def evaluate(
+    video: Path, out: Path, preset: str, budget_min: float, cache_dir: Path, steps: int | None = None
+) -> dict:
     from nvp.app.corpus import tracked_cached
     from nvp.errors import FormatError
     from nvp.face_model import default_face_model
@@ -47,7 +49,10 @@ def evaluate(video: Path, out: Path, preset: str, budget_min: float, cache_dir: 
     except FormatError:  # missing, damaged or made from other settings
         cache = build_cache(video, seq, model, get_preset(preset), np.arange(split))
         cache.save(cp, source)
-    train_renderer(cache, RendererTrainConfig(preset=preset, steps=10**6, budget_s=budget_min * 60), out)
+    cfg = RendererTrainConfig(
+        preset=preset, steps=steps or 10**6, budget_s=None if steps else budget_min * 60
+    )
+    train_renderer(cache, cfg, out)
     manifest = json.loads((out / "renderer.json").read_text())
     test = np.arange(split, seq.num_frames)
     rows, t_render = [], 0.0
@@ -100,6 +105,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--videos", nargs="+", default=DEFAULT_VIDEOS)
     ap.add_argument("--preset", default="cpu")
     ap.add_argument("--budget-minutes", type=float, default=45.0)
+    ap.add_argument("--steps", type=int, help="train this many steps instead of for a time budget")
     ap.add_argument("--cache", type=Path, default=Path("out/a2e/cache"), help="tracking cache")
     ap.add_argument("--out", type=Path, default=Path("out/eval_renderer"))
     args = ap.parse_args(argv)
@@ -107,7 +113,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"no evaluation data: {SHARED} does not exist")
         return 0
     rows = [
-        evaluate(SHARED / v, args.out / Path(v).stem, args.preset, args.budget_minutes, args.cache)
+        evaluate(
+            SHARED / v, args.out / Path(v).stem, args.preset, args.budget_minutes, args.cache, args.steps
+        )
         for v in args.videos
     ]
     print(write_results(rows, args.out))

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Set up (or refresh) nvp's virtual environment in .venv. Idempotent; needs only Python 3.11 and the
-# package registries. torch is pinned to the CPU build in pyproject.toml.
+# package registries. pyproject.toml pins torch==2.13.0, which on these machines pip takes from the local
+# CPU build (a newer or unpinned torch would pull a CUDA build of several GB).
 #   bash scripts/setup.sh          # nvp + test tools
 #   bash scripts/setup.sh tts      # also the optional text-to-speech extra (piper, GPL-3.0)
 set -euo pipefail

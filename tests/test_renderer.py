@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from nvp.media import VideoWriter
+from nvp.media import VideoWriter, iter_frames
 from renderer.crop import crop_boxes, crop_camera, cut, feather, paste, region_weight
 from renderer.data import build_cache, face_region
 from renderer.networks import (
@@ -313,3 +313,23 @@ def test_separable_morphology_equals_square_pooling(r):
     assert torch.equal(erode(x, r), -F.max_pool2d(-x, k, stride=1, padding=r))
     square = F.avg_pool2d(x, k, stride=1, padding=r, count_include_pad=False)
     assert torch.allclose(box_blur(x, r), square, atol=1e-6)
+
+
+def test_the_renderer_learns_loss_falls_and_a_held_out_frame_improves(footage, face_model, tmp_path):
+    from renderer.networks import make_renderer, save_renderer
+    from renderer.render import FrameRenderer
+
+    path, seq = footage
+    cache = build_cache(path, seq, face_model, TINY, np.arange(10), progress=False)
+    save_renderer(make_renderer(TINY), tmp_path / "untrained", TINY, {})
+    cfg = RendererTrainConfig(steps=120, lr=3e-3, checkpoint_every=40, preview_every=10**6)
+    info = train_renderer(cache, cfg, tmp_path / "trained", progress=False, preset=TINY)
+    assert info["log"][-1]["loss"] < 0.7 * info["log"][0]["loss"]
+    real = list(iter_frames(path))[11]  # never trained on
+
+    def error(renderer_dir):
+        with FrameRenderer(renderer_dir, face_model, seq, detail=False) as fr:
+            out = fr.render(real, 11, fr.tracked(11))
+        return np.abs(out.astype(float) - real).mean()
+
+    assert error(tmp_path / "trained") < 0.7 * error(tmp_path / "untrained")

@@ -9,8 +9,6 @@ from pathlib import Path
 
 from nvp import __version__
 
-VIDEO_SUFFIXES = (".mp4", ".mov", ".mkv", ".avi", ".webm", ".m4v")
-
 
 def _cmd_track(args: argparse.Namespace) -> int:
     from tracking.fit import TrackingConfig
@@ -33,38 +31,15 @@ def _cmd_track(args: argparse.Namespace) -> int:
 
 
 def _cmd_train_audio2exp(args: argparse.Namespace) -> int:
-    from nvp.app.corpus import load_sample
+    from nvp.app.corpus import corpus_split
     from nvp.app.train_audio2exp import Audio2ExpTrainConfig, train
-    from nvp.errors import NvpError
     from nvp.face_model import default_face_model
 
-    videos = sorted(p for p in Path(args.corpus).iterdir() if p.suffix.lower() in VIDEO_SUFFIXES)
-    if not videos:
-        raise NvpError(f"no videos ({', '.join(VIDEO_SUFFIXES)}) in {args.corpus}")
-    val_names = set(args.val or [])
-    unknown = val_names - {v.name for v in videos}
-    if unknown:
-        raise NvpError(f"validation videos not in the corpus: {', '.join(sorted(unknown))}")
-    if not val_names:
-        val_names = {v.name for v in videos[:: max(len(videos) // 5, 1)][:5]}
-    exclude = set(args.exclude or [])
     cache = Path(args.cache) if args.cache else Path(args.output) / "cache"
-    samples = []
-    for v in videos:
-        if v.name in exclude:
-            continue
-        try:
-            samples.append(load_sample(v, cache, args.features, progress=not args.quiet))
-        except NvpError as e:
-            print(f"skipping {v.name}: {e}", file=sys.stderr)
-    train_set = [s for s in samples if s.name not in val_names]
-    val_set = [s for s in samples if s.name in val_names]
+    train_set, val_set, split = corpus_split(
+        Path(args.corpus), args.val, args.exclude, cache, args.features, progress=not args.quiet
+    )
     cfg = Audio2ExpTrainConfig(kind=args.features, steps=args.steps, seed=args.seed, val_every=args.val_every)
-    split = {
-        "train": [s.name for s in train_set],
-        "validation": [s.name for s in val_set],
-        "excluded": sorted(exclude),
-    }
     frames = {"train_frames": int(sum(s.valid.sum() for s in train_set))}
     result = train(
         train_set,
@@ -153,7 +128,9 @@ def _cmd_train_renderer(args: argparse.Namespace) -> int:
     cfg = RendererTrainConfig(
         preset=args.preset, steps=args.steps, budget_s=budget, seed=args.seed, vgg_weights=vgg
     )
-    result = train_renderer(cache, cfg, Path(args.output), device=args.device, progress=not args.quiet)
+    result = train_renderer(
+        cache, cfg, Path(args.output), device=_device(args.device), progress=not args.quiet
+    )
     print(
         f"trained the {args.preset} renderer on {result['train_frames']} frames: {result['steps']} steps in "
         f"{result['train_seconds'] / 60:.1f} min → {Path(args.output) / 'renderer.json'}"
@@ -181,7 +158,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
         audio = read_audio(args.video, None, mono=False)[int(start / seq.fps * rate) :]
     tags = synthetic_mark("render", renderer=str(args.renderer_dir))
     with (
-        FrameRenderer(args.renderer_dir, default_face_model(), seq, args.device) as fr,
+        FrameRenderer(args.renderer_dir, default_face_model(), seq, _device(args.device)) as fr,
         VideoWriter(args.output, seq.fps, seq.width, seq.height, audio, rate, metadata=tags) as vw,
     ):
         frames = iter_frames(args.video, seq.fps, start, n)
@@ -201,7 +178,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
         budget_minutes=args.budget_minutes,
         steps=args.steps,
         features=args.features,
-        device=args.device,
+        device=_device(args.device),
         vgg_weights=str(args.vgg_weights) if args.vgg_weights else None,
     )
     bundle = fit(args.video, args.output, cfg, progress=not args.quiet)
@@ -214,7 +191,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
 def _cmd_dub(args: argparse.Namespace) -> int:
     from nvp.app.dub import dub
 
-    r = dub(args.audio, args.person, args.output, device=args.device, progress=not args.quiet)
+    r = dub(args.audio, args.person, args.output, device=_device(args.device), progress=not args.quiet)
     print(
         f"{r.frames} frames ({r.frames / r.fps:.2f} s for {r.audio_seconds:.2f} s of audio) in "
         f"{r.seconds:.1f} s ({r.frames / r.seconds:.1f} frames/s) → {r.output}"
@@ -280,6 +257,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         budget_minutes=args.budget_minutes,
         steps=args.steps,
         side_by_side=args.side_by_side,
+        device=_device(args.device),
     )
     several = len(args.video) > 1
     if args.output:
@@ -328,9 +306,30 @@ def _nanmedian(x):
     return float(np.nanmedian(x)) if np.isfinite(x).any() else float("nan")
 
 
+def _add_device_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--device",
+        default="auto",
+        help="torch device: auto (cuda when a GPU is available, else cpu), cpu, cuda, cuda:1, ...",
+    )
+
+
+def _device(name: str) -> str:
+    """The torch device for ``--device`` (``auto`` picks cuda when torch sees a GPU)."""
+    if name != "auto":
+        return name
+    import torch
+
+    return "cuda" if torch.cuda.is_available() else "cpu"
+
+
 def _add_renderer_training_args(p: argparse.ArgumentParser, budget_minutes: float | None = None) -> None:
     """The renderer-training options shared by train-renderer, fit and eval."""
-    p.add_argument("--preset", choices=("cpu", "quality", "paper"), default="cpu", help="renderer preset")
+    from nvp.app.fit import FitConfig
+
+    p.add_argument(
+        "--preset", choices=("cpu", "quality", "paper"), default=FitConfig.preset, help="renderer preset"
+    )
     p.add_argument("--steps", type=int, help="renderer training steps (default: the preset's)")
     p.add_argument(
         "--budget-minutes", type=float, default=budget_minutes, help="stop renderer training after this long"
@@ -338,6 +337,10 @@ def _add_renderer_training_args(p: argparse.ArgumentParser, budget_minutes: floa
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The parser; option defaults come from the config dataclasses (light modules: no torch)."""
+    from nvp.app.evaluate import EvalConfig
+    from nvp.app.fit import FitConfig
+
     ap = argparse.ArgumentParser(
         prog="nvp", description="Neural Voice Puppetry: audio-driven facial reenactment."
     )
@@ -358,7 +361,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("train-audio2exp", help="train the generic Audio2ExpressionNet on a folder of videos")
     p.add_argument("corpus", type=Path, help="folder of talking-head videos with audio")
     p.add_argument("-o", "--output", type=Path, required=True, help="output folder (checkpoints, best model)")
-    p.add_argument("--features", choices=("phonemes", "mel"), default="phonemes", help="speech features")
+    p.add_argument(
+        "--features", choices=("phonemes", "mel"), default=FitConfig.features, help="speech features"
+    )
     p.add_argument(
         "--val", nargs="*", help="file names of validation videos (default: 5 spread over the list)"
     )
@@ -374,7 +379,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("person-map", help="learn a person's talking style (closed form) from their video")
     p.add_argument("video", type=Path, help="the person talking (video with audio)")
     p.add_argument("-o", "--output", type=Path, required=True, help="output person map (.npz + .json)")
-    p.add_argument("--features", choices=("phonemes", "mel"), default="phonemes", help="speech features")
+    p.add_argument(
+        "--features", choices=("phonemes", "mel"), default=FitConfig.features, help="speech features"
+    )
     p.add_argument("--cache", type=Path, help="tracking/feature cache folder")
     p.set_defaults(func=_cmd_person_map)
 
@@ -392,7 +399,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", type=Path, required=True, help="output folder (renderer.json/.npz)")
     _add_renderer_training_args(p)
     p.add_argument("--train-fraction", type=float, default=1.0, help="train on this first part of the video")
-    p.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
+    _add_device_arg(p)
     p.add_argument("--seed", type=int, default=0, help="random seed")
     p.add_argument("--vgg-weights", type=Path, help="VGG-16 weights (torchvision .pth) for a perceptual loss")
     p.set_defaults(func=_cmd_train_renderer)
@@ -404,15 +411,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", type=Path, required=True, help="output mp4")
     p.add_argument("--start-frame", type=int, default=0, help="first frame to render")
     p.add_argument("--frames", type=int, help="number of frames (default: to the end)")
-    p.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
+    _add_device_arg(p)
     p.set_defaults(func=_cmd_render)
 
     p = sub.add_parser("fit", help="learn a person from 1-3 minutes of their talking video")
     p.add_argument("video", type=Path, help="the person talking (video with audio)")
     p.add_argument("-o", "--output", type=Path, required=True, help="person bundle folder")
     _add_renderer_training_args(p)
-    p.add_argument("--features", choices=("phonemes", "mel"), default="phonemes", help="speech features")
-    p.add_argument("--device", default="cpu", help="torch device for training (cpu, cuda)")
+    p.add_argument(
+        "--features", choices=("phonemes", "mel"), default=FitConfig.features, help="speech features"
+    )
+    _add_device_arg(p)
     p.add_argument("--vgg-weights", type=Path, help="VGG-16 weights (torchvision .pth) for a perceptual loss")
     p.set_defaults(func=_cmd_fit)
 
@@ -420,7 +429,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("audio", type=Path, help="speech: wav, flac, mp3, m4a (or a video's audio track)")
     p.add_argument("--person", type=Path, required=True, help="person bundle from nvp fit")
     p.add_argument("-o", "--output", type=Path, required=True, help="output mp4")
-    p.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
+    _add_device_arg(p)
     p.set_defaults(func=_cmd_dub)
 
     p = sub.add_parser("info", help="summarise a person bundle")
@@ -441,9 +450,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "-o", "--output", type=Path, help="output folder (one subfolder per video when given several)"
     )
-    p.add_argument("--train-fraction", type=float, default=0.8, help="part used for fitting")
-    _add_renderer_training_args(p, budget_minutes=30.0)
+    p.add_argument(
+        "--train-fraction", type=float, default=EvalConfig.train_fraction, help="part used for fitting"
+    )
+    _add_renderer_training_args(p, budget_minutes=EvalConfig.budget_minutes)
     p.add_argument("--side-by-side", action="store_true", help="also write real | visual | audio video")
+    _add_device_arg(p)
     p.set_defaults(func=_cmd_eval)
 
     p = sub.add_parser("demo", help="make a talking person from a photo that ships with nvp, fit and dub it")

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from nvp.artifact import file_sha256, load_artifact, save_artifact
-from nvp.errors import FormatError
+from nvp.errors import FormatError, NvpError
 from nvp.face_model import default_face_model
 from nvp.person import VideoSample
 from nvp.tracked import TrackedSequence
@@ -64,3 +64,46 @@ def load_sample(video: Path, cache: Path, kind: str = "phonemes", progress: bool
     seq = tracked_cached(video, cache, progress)
     windows = features_cached(video, cache, kind, seq.fps, seq.num_frames)
     return VideoSample(name=video.name, windows=windows, tracked=seq)
+
+
+VIDEO_SUFFIXES = (".mp4", ".mov", ".mkv", ".avi", ".webm", ".m4v")
+
+
+def corpus_split(
+    folder: Path,
+    val: list[str] | None,
+    exclude: list[str] | None,
+    cache: Path,
+    kind: str,
+    progress: bool = True,
+) -> tuple[list[VideoSample], list[VideoSample], dict]:
+    """The videos of ``folder`` as training and validation samples (tracked and featurised, cached), and
+    the split as a dict for the model's manifest. ``val``: file names of validation videos (default: five
+    spread over the sorted list); ``exclude``: file names left out; a video that cannot be used (no face,
+    no audio) is skipped with a warning."""
+    videos = sorted(p for p in Path(folder).iterdir() if p.suffix.lower() in VIDEO_SUFFIXES)
+    if not videos:
+        raise NvpError(f"no videos ({', '.join(VIDEO_SUFFIXES)}) in {folder}")
+    val_names = set(val or [])
+    unknown = val_names - {v.name for v in videos}
+    if unknown:
+        raise NvpError(f"validation videos not in the corpus: {', '.join(sorted(unknown))}")
+    if not val_names:
+        val_names = {v.name for v in videos[:: max(len(videos) // 5, 1)][:5]}
+    excluded = set(exclude or [])
+    samples = []
+    for v in videos:
+        if v.name in excluded:
+            continue
+        try:
+            samples.append(load_sample(v, cache, kind, progress=progress))
+        except NvpError as e:
+            log.warning("skipping %s: %s", v.name, e)
+    train_set = [s for s in samples if s.name not in val_names]
+    val_set = [s for s in samples if s.name in val_names]
+    split = {
+        "train": [s.name for s in train_set],
+        "validation": [s.name for s in val_set],
+        "excluded": sorted(excluded),
+    }
+    return train_set, val_set, split

@@ -45,6 +45,8 @@ class EvalConfig:
     """Speech features."""
     side_by_side: bool = False
     """Also write ``side_by_side.mp4`` (real | visual | audio)."""
+    device: str = "cpu"
+    """Torch device for renderer training and rendering."""
 
 
 def _trim(video: Path, out: Path, frames: int, fps: float) -> None:
@@ -124,7 +126,7 @@ def evaluate_video(
     train_clip = out / "train_part.mp4"
     if not train_clip.exists():
         _trim(video, train_clip, split, seq.fps)
-    fcfg = FitConfig(cfg.preset, cfg.budget_minutes, cfg.steps, cfg.features)
+    fcfg = FitConfig(cfg.preset, cfg.budget_minutes, cfg.steps, cfg.features, cfg.device)
     bundle = fit(train_clip, out / "person", fcfg, progress, tracked=seq.head(split))
     t_fit = time.perf_counter() - t0
 
@@ -150,7 +152,7 @@ def evaluate_video(
 
     t_render, t_other = time.perf_counter(), 0.0  # render time = loop time - measuring time
     try:
-        with FrameRenderer(bundle.path("renderer"), model, seq) as fr:
+        with FrameRenderer(bundle.path("renderer"), model, seq, cfg.device) as fr:
             frames = iter_frames(video, fps=seq.fps, start_frame=split, max_frames=n_test)
             indices = np.arange(split, split + n_test)
             variants = {"visual": None, "audio": spoken}

@@ -30,6 +30,7 @@ from nvp.audio2exp import (
     save_net,
     solve_person_map,
 )
+from nvp.errors import NvpError
 from nvp.face_model import FaceModel
 from nvp.geometry import posed
 from nvp.metrics import closure_f1, interocular_distance
@@ -113,7 +114,7 @@ def evaluate_person(
     t_split = int(round(seq.num_frames * train_fraction))
     tr = np.flatnonzero(seq.valid[:t_split])
     te = t_split + np.flatnonzero(seq.valid[t_split:])
-    if len(tr) < 10 or len(te) < 5:
+    if len(tr) < MIN_TRAIN_FRAMES or len(te) < MIN_TEST_FRAMES:
         raise ValueError(f"{sample.name}: too few valid frames to evaluate ({len(tr)} train, {len(te)} test)")
     gap_true_all = model.inner_lip_gap(seq.identity, seq.expression)
     if audio_exp is None:
@@ -153,6 +154,39 @@ def _summary(rows: list[dict[str, float]]) -> dict[str, float]:
     return {k: float(np.mean([r[k] for r in rows])) for k in keys}
 
 
+MIN_TRAIN_FRAMES, MIN_TEST_FRAMES = 10, 5
+"""Valid frames a validation video needs in its person-map part and in its held-out tail."""
+
+
+def usable_sets(
+    train_set: list[VideoSample], val_set: list[VideoSample], train_fraction: float
+) -> tuple[list[VideoSample], list[VideoSample]]:
+    """The training videos and the validation videos long enough for :func:`evaluate_person` (the others
+    are dropped with a warning), checked before any training; :class:`NvpError` when either set is empty."""
+    ok = []
+    for s in val_set:
+        t_split = int(round(s.tracked.num_frames * train_fraction))
+        n_train, n_test = int(s.valid[:t_split].sum()), int(s.valid[t_split:].sum())
+        if n_train < MIN_TRAIN_FRAMES or n_test < MIN_TEST_FRAMES:
+            log.warning(
+                "validation video %s is too short (%d + %d valid frames; needs %d + %d): left out",
+                s.name,
+                n_train,
+                n_test,
+                MIN_TRAIN_FRAMES,
+                MIN_TEST_FRAMES,
+            )
+        else:
+            ok.append(s)
+    if not train_set:
+        raise NvpError("no training video could be used (all were skipped or chosen for validation)")
+    if not ok:
+        raise NvpError(
+            "no validation video could be used (all were skipped or too short); name others with --val"
+        )
+    return train_set, ok
+
+
 def train(
     train_set: list[VideoSample],
     val_set: list[VideoSample],
@@ -168,6 +202,7 @@ def train(
     ``best.{npz,json}`` whenever the mean validation mouth error improves; its manifest holds the config,
     the step, the validation metrics and ``provenance`` (e.g. which videos). Returns the training log.
     """
+    train_set, val_set = usable_sets(train_set, val_set, cfg.train_fraction)
     out_dir.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
     net_cfg = cfg.net
@@ -208,6 +243,8 @@ def train(
             maps.copy_(state["maps"])
             bias.copy_(state["bias"])
         opt.load_state_dict(state["opt"])
+        if "torch_rng" in state:  # dropout draws from torch's global generator
+            torch.set_rng_state(state["torch_rng"])
         step, best = int(state["step"]), float(state["best"])
         log_rows = json.loads((out_dir / "log.json").read_text()) if (out_dir / "log.json").exists() else []
         log.info("resuming from step %d", step)
@@ -279,6 +316,7 @@ def train(
                     "opt": opt.state_dict(),
                     "step": step,
                     "best": best,
+                    "torch_rng": torch.get_rng_state(),
                 },
                 tmp,
             )
