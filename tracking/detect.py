@@ -102,3 +102,17 @@ def detect_video(
         blendshapes=np.stack(bss),
         found=np.asarray(found),
     )
+
+
+def count_faces(path: str | Path, samples: int = 8) -> int:
+    """The most faces mediapipe finds in any of ``samples`` frames spread over the video (up to 3): a
+    quick check that a target shows one person."""
+    info = probe_video(path)
+    picks = set(np.linspace(0, info.num_frames - 1, samples).round().astype(int).tolist())
+    most = 0
+    with LandmarkDetector(max_faces=3) as det:
+        for i, rgb in enumerate(iter_frames(path, max_frames=max(picks) + 1)):
+            if i in picks:
+                r = det.detect(rgb, i / info.fps)
+                most = max(most, r.faces if r is not None else 0)
+    return most

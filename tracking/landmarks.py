@@ -76,11 +76,13 @@ class FrameLandmarks:
             centre (mediapipe's normalised z scaled by the image width), smaller z = closer to the camera.
         blendshapes: ``(52,)`` float32 ARKit blendshape scores in [0, 1] (index 0 is ``_neutral``).
         pose: ``(4, 4)`` float32 mediapipe facial transformation (canonical face → camera, cm, OpenGL axes).
+        faces: how many faces were found (``points`` etc. are of the largest one).
     """
 
     points: np.ndarray
     blendshapes: np.ndarray
     pose: np.ndarray
+    faces: int = 1
 
 
 class LandmarkDetector:
@@ -90,7 +92,7 @@ class LandmarkDetector:
     found in the frame.
     """
 
-    def __init__(self, min_confidence: float = 0.5) -> None:
+    def __init__(self, min_confidence: float = 0.5, max_faces: int = 1) -> None:
         os.environ.setdefault("GLOG_minloglevel", "2")
         os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
         from mediapipe.tasks.python import vision
@@ -99,7 +101,7 @@ class LandmarkDetector:
         options = vision.FaceLandmarkerOptions(
             base_options=BaseOptions(model_asset_path=str(task_file())),
             running_mode=vision.RunningMode.VIDEO,
-            num_faces=1,
+            num_faces=max_faces,
             min_face_detection_confidence=min_confidence,
             min_face_presence_confidence=min_confidence,
             min_tracking_confidence=min_confidence,
@@ -129,10 +131,14 @@ class LandmarkDetector:
         if not result.face_landmarks:
             return None
         h, w = rgb.shape[:2]
-        pts = np.array([(p.x * w, p.y * h, p.z * w) for p in result.face_landmarks[0]], dtype=np.float32)
-        bs = np.array([c.score for c in result.face_blendshapes[0]], dtype=np.float32)
-        pose = np.asarray(result.facial_transformation_matrixes[0], dtype=np.float32).reshape(4, 4)
-        return FrameLandmarks(points=pts, blendshapes=bs, pose=pose)
+        faces = [
+            np.array([(p.x * w, p.y * h, p.z * w) for p in f], dtype=np.float32)
+            for f in result.face_landmarks
+        ]
+        k = int(np.argmax([np.ptp(f[:, 0]) * np.ptp(f[:, 1]) for f in faces]))  # the largest face
+        bs = np.array([c.score for c in result.face_blendshapes[k]], dtype=np.float32)
+        pose = np.asarray(result.facial_transformation_matrixes[k], dtype=np.float32).reshape(4, 4)
+        return FrameLandmarks(points=faces[k], blendshapes=bs, pose=pose, faces=len(faces))
 
     def close(self) -> None:
         if self._landmarker is not None:

@@ -100,9 +100,18 @@ def fit(
         builder.mark_done("target", source=str(video), seconds=round(time.perf_counter() - t0, 2))
 
     if not builder.done("track"):
+        from tracking.detect import count_faces
         from tracking.track import track_video
 
         t0 = _stage("track")
+        faces = count_faces(builder.path("target"))
+        if faces > 1:
+            log.warning(
+                "%s shows %d faces in some frames; nvp fits the largest one (%s)",
+                video.name,
+                faces,
+                GOOD_TARGET,
+            )
         seq = tracked if tracked is not None else track_video(builder.path("target"), progress=progress)[0]
         seq.save(builder.path("tracked"))
         builder.mark_done(
