@@ -31,11 +31,12 @@ class Preset:
     chin), so it is kept narrow: held-out crop PSNR on dfrf__cnn2 after 10 minutes of training 29.2 dB
     with 0.06, 31.9 with 0.03, 34.3 with 0.015. A dub blanks the union of the footage's and the new
     geometry's regions, so the footage's own chin is covered wherever the tracked mesh fits it."""
-    source_input: bool = True
+    source_input: bool = False
     """Give the face network the footage's own pixels moved onto the rendered surface (see
     :func:`renderer.data.moved_source`): in a dub the footage frame already shows this person's lower face
     with all its detail, only in the old shape, so the network corrects and fills in (the mouth interior)
-    instead of repainting skin from the neural texture. Trained with a different frame as the source."""
+    instead of repainting skin from the neural texture. Trained with a different frame as the source.
+    Off in the shipped presets until it is measured against them (training is about 25 % slower)."""
 
 
 PRESETS = {

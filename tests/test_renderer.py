@@ -25,7 +25,7 @@ from renderer.preset import Preset
 from renderer.train import RendererTrainConfig, train_renderer
 from tracking.synthetic import synthetic_tracked
 
-TINY = Preset("tiny", crop=32, base=4, dilated=False, texture_size=32, steps=2, batch=2)
+TINY = Preset("tiny", crop=32, base=4, dilated=False, texture_size=32, steps=2, batch=2, source_input=True)
 SIZE = 96
 
 
