@@ -118,8 +118,8 @@ def predict_expressions(
     """Expression coefficients ``(T, K_exp)`` for mono audio, at ``fps`` video frames per second.
 
     Speech features → generic network → person map; frames without voice (see
-    :func:`nvp.vad.voice_activity`) blend smoothly towards the person's rest expression, so
-    pauses and silence give a closed mouth.
+    :func:`nvp.vad.voice_activity`, a voice-activity detector) blend smoothly towards the person's rest
+    expression, so pauses, silence, noise and music give a closed mouth.
     """
     import torch
 

@@ -91,12 +91,17 @@ def test_predict_expressions_in_blocks_equals_one_pass(monkeypatch):
     np.testing.assert_allclose(blocked, whole, atol=1e-5)
 
 
-def test_silence_gives_the_rest_expression_and_speech_does_not():
+@pytest.mark.parametrize("pause", ["silence", "noise"])
+def test_pauses_give_the_rest_expression_and_speech_does_not(pause):
+    from nvp.app.demo_voice import speech_script, synth_voice
+
     net = Audio2ExpressionNet(Audio2ExpConfig(feature_dim=80)).eval()
     style = _style()
     rng = np.random.default_rng(1)
-    speech = (0.2 * rng.standard_normal(16000 * 2)).astype(np.float32)
+    speech = synth_voice(speech_script(2.0, rng), 2.0, rng)
     audio = np.concatenate([np.zeros(16000 * 2, np.float32), speech, np.zeros(16000 * 2, np.float32)])
+    if pause == "noise":  # white noise at -30 dBFS throughout: not voice, the mouth still rests
+        audio += (0.03 * rng.standard_normal(len(audio))).astype(np.float32)
     expr = predict_expressions(audio, 16000, 25.0, style, net)
     assert expr.shape == (150, K)
     np.testing.assert_allclose(expr[:40], np.broadcast_to(style.rest_expression, (40, K)), atol=1e-6)

@@ -14,11 +14,11 @@ from nvp.media import probe_video, read_audio
 
 
 def speechlike(seconds: float, sr: int = 22050, seed: int = 0) -> np.ndarray:
-    """Syllable-rate amplitude-modulated noise: 'speech' for the energy-based checks."""
+    """Synthetic voiced speech (the demo's voice), which the voice-activity detector takes for speech."""
+    from nvp.app.demo_voice import speech_script, synth_voice
+
     rng = np.random.default_rng(seed)
-    t = np.arange(int(seconds * sr)) / sr
-    env = np.clip(np.sin(2 * np.pi * 4 * t), 0, None)
-    return (0.3 * env * rng.standard_normal(len(t))).astype(np.float32)
+    return synth_voice(speech_script(seconds, rng), seconds, rng, sr)
 
 
 @pytest.fixture(scope="module")
