@@ -10,8 +10,12 @@ Two re-creations of every held-out frame, both rendered into that real frame wit
 Metrics per frame and summarised: PSNR / SSIM on the full frame and on the stabilised face crop;
 mediapipe run on real and generated frames: lip landmark distance / interocular distance (the paper's
 metric), lip-closure precision / recall / F1 (inner-lip gap below the real video's closed level), the
-audio-visual offset (cross-correlation of mouth opening, frames; 0 is perfect) and mouth-landmark jitter
-relative to the real video.
+audio-visual offset (cross-correlation of mouth opening, frames; 0 is perfect), mouth-landmark jitter
+relative to the real video, and lip-sync behaviour measured on generated and real frames alike (``*_real``
+is the target): the bilabial closure rate (frames where the held-out audio says p, b or m with the mouth
+closed from 0.16 s before; ratio to the real rate), the opening range (p95 of the gap over the real p95)
+and pauses of at least 0.3 s found by the voice-activity detector (fraction of pause frames with a closed
+or resting mouth, mouth motion in pauses relative to speech).
 """
 
 from __future__ import annotations
@@ -61,25 +65,65 @@ def _trim(video: Path, out: Path, frames: int, fps: float) -> None:
             w.write(frame)
 
 
-def _lip_metrics(real: np.ndarray, gen: np.ndarray, found: np.ndarray, groups: dict) -> dict:
-    """Landmark metrics of generated vs real mediapipe landmarks ``(T, 478, 2)`` on frames ``found``."""
-    from nvp.metrics import av_offset, closure_f1, inner_lip_gap, interocular_distance, jitter
+def _speech_timing(audio: np.ndarray, rate: int, fps: float, n: int) -> dict:
+    """What the held-out audio ``(S,)`` says, per video frame (``(n,)`` bool each): ``bilabial`` frames (the
+    phoneme recogniser hears p, b or m), ``speech`` frames (voice-activity probability >= 0.5) and
+    ``pauses`` (runs of at least 0.3 s without speech)."""
+    from nvp.audio_features import extract_features, phoneme_labels
+    from nvp.metrics import bilabial_classes, bilabial_frames, pause_mask
+    from nvp.vad import SPEECH_THRESHOLD, frame_speech_probability
+
+    post = extract_features(audio, rate, kind="phonemes")
+    bil = bilabial_frames(post.values, bilabial_classes(phoneme_labels()), post.rate, fps, n)
+    voiced = frame_speech_probability(audio, rate, fps, n) >= SPEECH_THRESHOLD
+    return {"bilabial": bil, "speech": voiced, "pauses": pause_mask(voiced, fps, 0.3), "fps": fps}
+
+
+def _lip_metrics(real: np.ndarray, gen: np.ndarray, found: np.ndarray, groups: dict, timing: dict) -> dict:
+    """Landmark metrics of generated vs real mediapipe landmarks ``(T, 478, 2)`` on frames ``found``, with
+    the lip-sync behaviour measured on both (``*_real``: the real video's number, the target) at the
+    frames of :func:`_speech_timing` ``timing``."""
+    from nvp.metrics import (
+        BILABIAL_LEAD_S,
+        av_offset,
+        bilabial_closure_rate,
+        closed_level,
+        closure_f1,
+        inner_lip_gap,
+        interocular_distance,
+        jitter,
+        opening_range_ratio,
+        pause_behaviour,
+    )
 
     lips = np.concatenate([groups["lips_outer"], groups["lips_inner"]])
     iod = interocular_distance(real, groups["left_eye"], groups["right_eye"])
     err = np.linalg.norm(gen[:, lips] - real[:, lips], axis=-1).mean(1) / iod
     gap_r, gap_g = inner_lip_gap(real) / iod, inner_lip_gap(gen) / iod
-    lo, hi = np.nanmin(gap_r[found]), np.nanpercentile(gap_r[found], 95)
-    closure = closure_f1(gap_g[found], gap_r[found], lo + 0.15 * (hi - lo))
+    closed, rest = closed_level(gap_r[found]), closed_level(gap_r[found], 0.3)
+    closure = closure_f1(gap_g[found], gap_r[found], closed)
     lag, corr = av_offset(np.where(found, gap_g, np.nan), np.where(found, gap_r, np.nan))
     jit_r = np.nanmean(jitter(real[found], lips) / iod[found][1:-1])
     jit_g = np.nanmean(jitter(gen[found], lips) / iod[found][1:-1])
+    # lip-sync behaviour, generated and real alike, on the frames where both have a face
+    gaps = {"": np.where(found, gap_g, np.nan), "_real": np.where(found, gap_r, np.nan)}
+    bil, pauses, speech = (timing[k] & found for k in ("bilabial", "pauses", "speech"))
+    lead = int(round(BILABIAL_LEAD_S * timing["fps"]))
+    sync: dict = {"bilabial_frames": int(bil.sum()), "pause_frames": int(pauses.sum())}
+    for suffix, g in gaps.items():
+        sync[f"bilabial_closure_rate{suffix}"] = bilabial_closure_rate(g, bil, closed, lead)
+        for k, v in pause_behaviour(g, pauses, speech, rest).items():
+            sync[f"{k}{suffix}"] = v
+    rate_r = sync["bilabial_closure_rate_real"]
+    sync["bilabial_closure_ratio"] = sync["bilabial_closure_rate"] / rate_r if rate_r > 0 else float("nan")
+    sync["opening_range_ratio"] = opening_range_ratio(gap_g[found], gap_r[found])
     return {
         "mouth_landmark_error_iod": float(np.nanmean(err[found])),
         **{k: float(v) for k, v in closure.items()},
         "av_offset_frames": int(lag),
         "opening_corr": corr,
         "mouth_jitter_ratio": float(jit_g / jit_r),
+        **sync,
         "per_frame_error": err.tolist(),
     }
 
@@ -136,6 +180,7 @@ def evaluate_video(
     rate = audio_rate(video)
     audio = read_audio(video, rate)[int(round(split / seq.fps * rate)) :]
     expr_audio = predict_expressions(audio, rate, seq.fps, style, net, num_frames=n_test)
+    timing = _speech_timing(audio, rate, seq.fps, n_test)
 
     kinds = ("real", "visual", "audio")
     marks = {k: np.full((n_test, 478, 2), np.nan) for k in kinds}
@@ -201,7 +246,7 @@ def evaluate_video(
     for k in ("visual", "audio"):
         found = has["real"] & has[k]
         if found.sum() >= 3:
-            m = _lip_metrics(marks["real"], marks[k], found, model.landmark_groups)
+            m = _lip_metrics(marks["real"], marks[k], found, model.landmark_groups, timing)
         else:  # mediapipe finds no face in the generated frames: a failed render, reported as such
             log.warning("%s: mediapipe found a face in only %d %s frames", video.name, found.sum(), k)
             m = {"mouth_landmark_error_iod": float("nan"), "per_frame_error": [float("nan")] * n_test}
