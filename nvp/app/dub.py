@@ -82,7 +82,7 @@ def dub(
     original = read_audio(audio_path, None, mono=False)
     mono = original if original.ndim == 1 else original.mean(1)
     if len(mono) == 0 or not speech_activity(mono, rate):
-        raise NvpError(f"{audio_path}: no speech found (the audio is silent or too quiet)")
+        raise NvpError(f"{audio_path}: no speech found (silence, noise or music only, or too quiet)")
     style = PersonStyle.load(bundle.path("style"))
     net, manifest = default_audio2exp(style.feature_kind)
     if manifest["sha256"] != style.audio2exp_sha256:

@@ -101,7 +101,7 @@ def evaluate_person(
 
     The person map is solved on the first ``train_fraction`` of the frames; the tail is predicted. With
     ``audio_exp=None`` the prediction is the person's mean expression (baseline). With ``voice`` ``(T,)``
-    (see :func:`nvp.audio_features.voice_activity`) unvoiced frames blend towards the person's rest
+    (see :func:`nvp.vad.voice_activity`) unvoiced frames blend towards the person's rest
     expression, as ``nvp.person.predict_expressions`` does.
 
     Returns mouth landmark error (projected lip vertices of predicted vs tracked mesh under the tracked
