@@ -52,8 +52,9 @@ class PersonStyle:
 
     Attributes:
         person_map: ``(K_exp, A)`` matrix and ``(K_exp,)`` bias.
-        rest_expression: ``(K_exp,)`` the person's closed, relaxed mouth (mean tracked expression of their
-            most closed frames); silence in new audio blends towards it (see :func:`predict_expressions`).
+        rest_expression: ``(K_exp,)`` the person's mouth at rest: how they hold it in the pauses of their
+            footage (or, without enough pauses, their most closed mouth); silence in new audio blends
+            towards it (see :func:`predict_expressions`).
         feature_kind: the speech features the map was solved with.
         audio2exp_sha256: hash of the generic network's weights the map belongs to.
         info: provenance (video, frames).
@@ -94,17 +95,56 @@ def rest_expression(expression: np.ndarray, gap: np.ndarray, fraction: float = 0
     return expression[np.argsort(gap)[:n]].mean(0).astype(np.float32)
 
 
+PAUSE_MIN_S = 0.3
+"""Shortest run of unvoiced frames that counts as a pause."""
+PAUSE_MIN_FRAMES = 5
+"""Pause frames needed to take the person's mouth in pauses from them (else: their most closed mouth)."""
+
+
+def voiced_frames(video: Path, fps: float, num_frames: int) -> np.ndarray:
+    """``(T,)`` bool: video frames whose audio the voice-activity detector calls speech."""
+    from nvp.media import read_audio
+    from nvp.vad import frame_speech_probability
+
+    audio = read_audio(video, 16000)
+    return frame_speech_probability(audio, 16000, fps, num_frames) >= 0.5
+
+
+def pause_expression(expression: np.ndarray, voiced: np.ndarray, fps: float) -> np.ndarray | None:
+    """``(K_exp,)`` median expression of the frames in pauses (runs of ``PAUSE_MIN_S`` without voice) of
+    ``expression`` ``(T, K_exp)`` / ``voiced`` ``(T,)``: how this person holds the mouth between phrases;
+    None with fewer than ``PAUSE_MIN_FRAMES`` such frames."""
+    from nvp.metrics import pause_mask
+
+    pauses = pause_mask(voiced, fps, PAUSE_MIN_S)
+    if pauses.sum() < PAUSE_MIN_FRAMES:
+        return None
+    return np.median(expression[pauses], 0).astype(np.float32)
+
+
 def style_from_sample(
-    net: Audio2ExpressionNet, manifest: dict, sample: VideoSample, model: FaceModel, ridge: float = 10.0
+    net: Audio2ExpressionNet,
+    manifest: dict,
+    sample: VideoSample,
+    model: FaceModel,
+    ridge: float = 10.0,
+    voiced: np.ndarray | None = None,
 ) -> PersonStyle:
-    """A person's style from their tracked video: closed-form map on all valid frames, rest expression."""
+    """A person's style from their tracked video: closed-form map on all valid frames; the rest expression
+    is the person's mouth in their pauses when ``voiced`` ``(T,)`` (see :func:`voiced_frames`) shows
+    enough of them, else their most closed mouth. Measured on the validation people of
+    ``scripts/data_split.json`` (``scripts/eval_lipsync.py``, voice-activity gate, clean audio): pause
+    frames at rest 0.85 → 0.06 (real 0.09), opening correlation 0.40 → 0.49."""
     ok = sample.valid
     pmap = solve_person_map(audio_expressions(net, sample.windows)[ok], sample.expression[ok], ridge)
     gap = model.inner_lip_gap(sample.tracked.identity, sample.expression[ok])
-    info = {"video": sample.name, "frames": int(ok.sum()), "ridge": ridge}
-    return PersonStyle(
-        pmap, rest_expression(sample.expression[ok], gap), manifest["feature_kind"], manifest["sha256"], info
-    )
+    rest, kind = rest_expression(sample.expression[ok], gap), "closed"
+    if voiced is not None:
+        in_pause = pause_expression(sample.expression[ok], voiced[ok], sample.tracked.fps)
+        if in_pause is not None:
+            rest, kind = in_pause, "pauses"
+    info = {"video": sample.name, "frames": int(ok.sum()), "ridge": ridge, "rest": kind}
+    return PersonStyle(pmap, rest, manifest["feature_kind"], manifest["sha256"], info)
 
 
 def predict_expressions(

@@ -58,7 +58,7 @@ from nvp.metrics import (
     pause_behaviour,
     pause_mask,
 )
-from nvp.person import rest_expression
+from nvp.person import pause_expression, rest_expression
 from nvp.vad import energy_voice_activity, frame_speech_probability, rms_envelope_db, voice_activity
 from nvp.windows import frame_windows
 
@@ -102,6 +102,9 @@ def evaluate_video(
     post = extract_features(audio, SR, kind="phonemes")
     bil = bilabial_frames(post.values, labels_idx, post.rate, fps, n)[te] & ok
     voiced = frame_speech_probability(audio, SR, fps, n) >= 0.5
+    if not args.closed_rest:  # what nvp fit does: the person's mouth in the pauses of the fitting part
+        in_pause = pause_expression(seq.expression[tr], voiced[tr], fps)
+        rest = rest if in_pause is None else in_pause
     pauses, speech = pause_mask(voiced, fps, 0.3)[te] & ok, voiced[te] & ok
     real = {
         "video": name,
@@ -209,6 +212,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cache", type=Path, default=Path("/tmp/nvp-cache"))
     ap.add_argument("--out", type=Path, default=Path("out/eval_lipsync"))
     ap.add_argument("--videos", nargs="*", help="only these clips of the set")
+    ap.add_argument(
+        "--closed-rest", action="store_true", help="rest = most closed mouth (before: the mouth in pauses)"
+    )
     args = ap.parse_args(argv)
     if not SHARED.is_dir():
         print(f"no evaluation data: {SHARED} does not exist")

@@ -166,3 +166,17 @@ def test_predict_rejects_a_map_made_with_another_network(tmp_path):
     proc = nvp("predict", tmp_path / "a.wav", "--style", tmp_path / "style.json", "-o", tmp_path / "p.npz")
     assert_one_line_error(proc, "another audio2expressionnet")
     assert not (tmp_path / "p.npz").exists()
+
+
+def test_the_rest_mouth_is_the_one_held_in_pauses(face_model):
+    from nvp.person import pause_expression
+
+    fps, t = 25.0, 100
+    expr = np.zeros((t, face_model.num_exp), np.float32)
+    expr[:, 0] = 1.0  # talking
+    expr[40:60, 0] = 0.3  # a 0.8 s pause with the mouth slightly open
+    voiced = np.ones(t, bool)
+    voiced[40:60] = False
+    voiced[80:83] = False  # 0.12 s: a gap, not a pause
+    np.testing.assert_allclose(pause_expression(expr, voiced, fps)[0], 0.3)
+    assert pause_expression(expr, np.ones(t, bool), fps) is None  # no pause: the caller keeps its default

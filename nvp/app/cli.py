@@ -61,12 +61,14 @@ def _cmd_person_map(args: argparse.Namespace) -> int:
     from nvp.app.corpus import load_sample
     from nvp.audio2exp import default_audio2exp
     from nvp.face_model import default_face_model
-    from nvp.person import style_from_sample
+    from nvp.person import style_from_sample, voiced_frames
 
     net, manifest = default_audio2exp(args.features)
     cache = Path(args.cache) if args.cache else Path(args.output).parent / ".nvp-cache"
     sample = load_sample(Path(args.video), cache, args.features, progress=not args.quiet)
-    js = style_from_sample(net, manifest, sample, default_face_model()).save(Path(args.output))
+    voiced = voiced_frames(Path(args.video), sample.tracked.fps, sample.tracked.num_frames)
+    style = style_from_sample(net, manifest, sample, default_face_model(), voiced=voiced)
+    js = style.save(Path(args.output))
     print(f"person map from {int(sample.valid.sum())} frames → {js}")
     return 0
 

@@ -125,7 +125,7 @@ def fit(
         from nvp.app.corpus import features_cached
         from nvp.audio2exp import default_audio2exp
         from nvp.face_model import default_face_model
-        from nvp.person import VideoSample, style_from_sample
+        from nvp.person import VideoSample, style_from_sample, voiced_frames
 
         t0 = _stage("person style")
         seq = TrackedSequence.load(builder.path("tracked"))
@@ -134,7 +134,9 @@ def fit(
         )
         net, manifest = default_audio2exp(cfg.features)
         sample = VideoSample(name=video.name, windows=windows, tracked=seq)
-        style_from_sample(net, manifest, sample, default_face_model()).save(builder.path("style"))
+        voiced = voiced_frames(builder.path("target"), seq.fps, seq.num_frames)
+        style = style_from_sample(net, manifest, sample, default_face_model(), voiced=voiced)
+        style.save(builder.path("style"))
         builder.mark_done("style", seconds=round(time.perf_counter() - t0, 2))
 
     if not builder.done("renderer"):
