@@ -50,6 +50,11 @@ class Audio2ExpConfig:
     """Leaky ReLU slope."""
     dropout: float = 0.0
     """Dropout on the fully connected layers during training (small corpora overfit)."""
+    closure_head: bool = False
+    """Also predict, per frame, the logit that the lips are closed (a linear layer on the per-frame net's
+    last hidden features). A regression to expressions averages a closed and an open mouth into a
+    half-open one where the audio is ambiguous; the head says how likely a closure is, so the person
+    layer can close the mouth fully (:mod:`nvp.person`)."""
 
 
 class PerFrameNet(nn.Module):
@@ -82,10 +87,14 @@ class PerFrameNet(nn.Module):
         )
 
     def forward(self, windows: torch.Tensor) -> torch.Tensor:
+        return self.fc[-2:](self.hidden(windows))
+
+    def hidden(self, windows: torch.Tensor) -> torch.Tensor:
+        """``(B, 64)`` features of the last hidden layer (before the audio-expression output layer)."""
         if windows.ndim != 3:
             raise ValueError(f"expected feature windows (B, W, D), got {tuple(windows.shape)}")
         x = (windows - self.input_mean) / self.input_std
-        return self.fc(self.conv(x.transpose(1, 2)))
+        return self.fc[:-2](self.conv(x.transpose(1, 2)))
 
     def set_input_stats(self, features: torch.Tensor) -> None:
         """Standardise inputs with the per-channel mean and std of ``features`` ``(..., D)``."""
@@ -120,6 +129,14 @@ class Audio2ExpressionNet(nn.Module):
         self.cfg = cfg
         self.per_frame = PerFrameNet(cfg)
         self.filter = ExpressionFilter(cfg)
+        self.closure = nn.Linear(64, 1) if cfg.closure_head else None
+
+    def frame_outputs(self, windows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Per-frame audio-expressions ``(B, A)`` and closure logits ``(B,)`` (None without the closure
+        head) for feature windows ``(B, W, D)``."""
+        h = self.per_frame.hidden(windows)
+        raw = self.per_frame.fc[-2:](h)
+        return raw, (self.closure(h)[:, 0] if self.closure is not None else None)
 
     def sequence(self, windows: torch.Tensor, use_filter: bool = True, batch: int = 2048) -> torch.Tensor:
         """Audio-expressions ``(T, A)`` for a whole sequence of feature windows ``(T, W, D)``."""
@@ -216,6 +233,20 @@ def audio_expressions(net: Audio2ExpressionNet, windows: np.ndarray, use_filter:
     net.eval()
     with torch.no_grad():
         return net.sequence(torch.from_numpy(windows), use_filter=use_filter).numpy()
+
+
+def closure_probability(
+    net: Audio2ExpressionNet, windows: np.ndarray, batch: int = 2048
+) -> np.ndarray | None:
+    """``(T,)`` probability that the lips are closed at each frame, from feature windows ``(T, W, D)``
+    (None for a network without the closure head)."""
+    if net.closure is None:
+        return None
+    net.eval()
+    with torch.no_grad():
+        x = torch.from_numpy(windows)
+        logits = [net.frame_outputs(x[s : s + batch])[1] for s in range(0, len(x), batch)]
+        return torch.sigmoid(torch.cat(logits)).numpy() if logits else np.zeros(0, np.float32)
 
 
 def save_net(net: Audio2ExpressionNet, out: Path, manifest: dict) -> Path:

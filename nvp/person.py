@@ -12,14 +12,22 @@ from pathlib import Path
 import numpy as np
 
 from nvp.artifact import load_artifact, save_artifact
-from nvp.audio2exp import Audio2ExpressionNet, PersonMap, audio_expressions, solve_person_map
+from nvp.audio2exp import (
+    Audio2ExpressionNet,
+    PersonMap,
+    audio_expressions,
+    closure_probability,
+    solve_person_map,
+)
 from nvp.face_model import FaceModel
 from nvp.tracked import TrackedSequence
 
 WINDOW_BLOCK = 2048
 """Video frames whose feature windows :func:`predict_expressions` builds at a time (25 MB for phonemes)."""
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+"""2: the person's closed mouth (``closed``) for the network's closure head; version 1 files load without
+it."""
 
 
 @dataclass(frozen=True)
@@ -55,6 +63,8 @@ class PersonStyle:
         rest_expression: ``(K_exp,)`` the person's mouth at rest: how they hold it in the pauses of their
             footage (or, without enough pauses, their most closed mouth); silence in new audio blends
             towards it (see :func:`predict_expressions`).
+        closed_expression: ``(K_exp,)`` the person's closed lips while speaking (p, b, m, ...): frames
+            where the network's closure head is sure blend towards it; None without a closure head.
         feature_kind: the speech features the map was solved with.
         audio2exp_sha256: hash of the generic network's weights the map belongs to.
         info: provenance (video, frames).
@@ -65,6 +75,7 @@ class PersonStyle:
     feature_kind: str
     audio2exp_sha256: str
     info: dict
+    closed_expression: np.ndarray | None = None
 
     def save(self, path: Path) -> Path:
         """Write ``path`` (.npz) and its ``.json`` manifest (:mod:`nvp.artifact`); returns the manifest."""
@@ -73,6 +84,8 @@ class PersonStyle:
             "bias": self.person_map.bias,
             "rest": self.rest_expression,
         }
+        if self.closed_expression is not None:
+            arrays["closed"] = self.closed_expression
         fields = {
             "feature_kind": self.feature_kind,
             "audio2exp_sha256": self.audio2exp_sha256,
@@ -82,10 +95,12 @@ class PersonStyle:
 
     @classmethod
     def load(cls, path: Path) -> PersonStyle:
-        art = load_artifact(path, "person_map", FORMAT_VERSION)
+        art = load_artifact(path, "person_map", (1, FORMAT_VERSION))
         a, m = art.arrays, art.manifest
         pm = PersonMap(matrix=a["matrix"], bias=a["bias"])
-        return cls(pm, a["rest"], m["feature_kind"], m["audio2exp_sha256"], m.get("info", {}))
+        return cls(
+            pm, a["rest"], m["feature_kind"], m["audio2exp_sha256"], m.get("info", {}), a.get("closed")
+        )
 
 
 def rest_expression(expression: np.ndarray, gap: np.ndarray, fraction: float = 0.1) -> np.ndarray:
@@ -122,6 +137,48 @@ def pause_expression(expression: np.ndarray, voiced: np.ndarray, fps: float) -> 
     return np.median(expression[pauses], 0).astype(np.float32)
 
 
+RANGE_GAIN_LIMITS = (1.0, 2.0)
+"""Bounds of the gain that widens the person map's predictions (see :func:`style_from_sample`)."""
+CLOSURE_RAMP = (0.5, 0.8)
+"""Closure probabilities (the network's closure head) mapped linearly to blend weights 0 … 1 towards the
+person's closed mouth (see :func:`style_expressions`)."""
+
+
+def range_calibrated(
+    pmap: PersonMap, audio_exp: np.ndarray, gap_of, real_gap: np.ndarray
+) -> tuple[PersonMap, float]:
+    """The person map with its predictions widened around their mean so that the spread (5th to 95th
+    percentile) of the predicted inner-lip gap on the person's own frames matches the tracked one.
+
+    A least-squares map predicts the mean of what the audio allows, so its openings are compressed towards
+    the person's average mouth. Args: ``audio_exp`` ``(T, A)`` the network's outputs on the person's
+    frames, ``gap_of`` a function from expressions ``(T, K_exp)`` to inner-lip gaps ``(T,)``, ``real_gap``
+    ``(T,)`` their tracked gaps. The gain is kept within :data:`RANGE_GAIN_LIMITS`; returns it too.
+    """
+    pred = pmap.apply(audio_exp)
+    spread = np.percentile(gap_of(pred), 95) - np.percentile(gap_of(pred), 5)
+    real = np.percentile(real_gap, 95) - np.percentile(real_gap, 5)
+    gain = float(np.clip(real / spread, *RANGE_GAIN_LIMITS)) if spread > 1e-9 else 1.0
+    mean = pred.mean(0)
+    matrix = (gain * pmap.matrix).astype(np.float32)
+    bias = (gain * pmap.bias + (1 - gain) * mean).astype(np.float32)
+    return PersonMap(matrix=matrix, bias=bias), gain
+
+
+def closed_mouth(expression: np.ndarray, gap: np.ndarray, voiced: np.ndarray | None = None) -> np.ndarray:
+    """``(K_exp,)`` the person's closed lips while speaking: mean expression of the frames ``(T, K_exp)``
+    whose inner-lip gap ``(T,)`` is at or below their closed level (:func:`nvp.metrics.closed_level`),
+    among the voiced ones ``(T,)`` when given; their most closed mouth when fewer than 3 such frames."""
+    from nvp.metrics import closed_level
+
+    shut = gap <= closed_level(gap)
+    if voiced is not None and np.sum(shut & voiced) >= 3:
+        shut &= voiced
+    if shut.sum() < 3:
+        return rest_expression(expression, gap)
+    return expression[shut].mean(0).astype(np.float32)
+
+
 def style_from_sample(
     net: Audio2ExpressionNet,
     manifest: dict,
@@ -130,21 +187,66 @@ def style_from_sample(
     ridge: float = 10.0,
     voiced: np.ndarray | None = None,
 ) -> PersonStyle:
-    """A person's style from their tracked video: closed-form map on all valid frames; the rest expression
-    is the person's mouth in their pauses when ``voiced`` ``(T,)`` (see :func:`voiced_frames`) shows
-    enough of them, else their most closed mouth. Measured on the validation people of
-    ``scripts/data_split.json`` (``scripts/eval_lipsync.py``, voice-activity gate, clean audio): pause
-    frames at rest 0.85 → 0.06 (real 0.09), opening correlation 0.40 → 0.49."""
+    """A person's style from their tracked video.
+
+    * person map: closed-form ridge map on all valid frames, widened so that the spread of its mouth
+      openings on these frames matches the tracked one (:func:`range_calibrated`);
+    * rest expression: the person's mouth in their pauses when ``voiced`` ``(T,)`` (see
+      :func:`voiced_frames`) shows enough of them, else their most closed mouth. Measured on the
+      validation people of ``scripts/data_split.json`` (``scripts/eval_lipsync.py``): pause frames at rest
+      0.85 → 0.06 (real 0.09), opening correlation 0.40 → 0.49;
+    * closed expression: their closed lips while speaking (:func:`closed_mouth`), when the network has a
+      closure head.
+    """
     ok = sample.valid
-    pmap = solve_person_map(audio_expressions(net, sample.windows)[ok], sample.expression[ok], ridge)
-    gap = model.inner_lip_gap(sample.tracked.identity, sample.expression[ok])
-    rest, kind = rest_expression(sample.expression[ok], gap), "closed"
+    identity = sample.tracked.identity
+    audio_exp = audio_expressions(net, sample.windows)[ok]
+    expression = sample.expression[ok]
+    gap = model.inner_lip_gap(identity, expression)
+    pmap = solve_person_map(audio_exp, expression, ridge)
+    pmap, gain = range_calibrated(pmap, audio_exp, lambda e: model.inner_lip_gap(identity, e), gap)
+    rest, kind = rest_expression(expression, gap), "closed"
     if voiced is not None:
-        in_pause = pause_expression(sample.expression[ok], voiced[ok], sample.tracked.fps)
+        in_pause = pause_expression(expression, voiced[ok], sample.tracked.fps)
         if in_pause is not None:
             rest, kind = in_pause, "pauses"
-    info = {"video": sample.name, "frames": int(ok.sum()), "ridge": ridge, "rest": kind}
-    return PersonStyle(pmap, rest, manifest["feature_kind"], manifest["sha256"], info)
+    closed = None
+    if net.closure is not None:
+        closed = closed_mouth(expression, gap, None if voiced is None else voiced[ok])
+    info = {"video": sample.name, "frames": int(ok.sum()), "ridge": ridge, "rest": kind, "range_gain": gain}
+    return PersonStyle(pmap, rest, manifest["feature_kind"], manifest["sha256"], info, closed)
+
+
+def closure_weight(probability: np.ndarray) -> np.ndarray:
+    """``(T,)`` blend weights towards the closed mouth for closure probabilities ``(T,)``
+    (:data:`CLOSURE_RAMP`)."""
+    lo, hi = CLOSURE_RAMP
+    return np.clip((np.asarray(probability, np.float64) - lo) / (hi - lo), 0.0, 1.0)
+
+
+def apply_style(
+    style: PersonStyle, audio_exp: np.ndarray, closure: np.ndarray | None, voice: np.ndarray | None
+) -> np.ndarray:
+    """Expression coefficients ``(T, K_exp)`` of a person from the generic network's outputs.
+
+    Audio-expressions ``(T, A)`` → person map; where the closure head's probabilities ``closure`` ``(T,)``
+    say the lips are closed, the mouth blends to the person's closed mouth (:func:`closure_weight`); where
+    ``voice`` ``(T,)`` in [0, 1] (see :func:`nvp.vad.voice_activity`) is low, it blends to their rest mouth.
+    """
+    expr = style.person_map.apply(audio_exp)
+    if style.closed_expression is not None and closure is not None:
+        w = closure_weight(closure)[:, None]
+        expr = expr + w * (style.closed_expression - expr)
+    if voice is not None:
+        expr = style.rest_expression + np.asarray(voice)[:, None] * (expr - style.rest_expression)
+    return expr.astype(np.float32)
+
+
+def style_expressions(
+    style: PersonStyle, net: Audio2ExpressionNet, windows: np.ndarray, voice: np.ndarray | None = None
+) -> np.ndarray:
+    """:func:`apply_style` for feature windows ``(T, W, D)`` held in memory (evaluations)."""
+    return apply_style(style, audio_expressions(net, windows), closure_probability(net, windows), voice)
 
 
 def predict_expressions(
@@ -157,9 +259,9 @@ def predict_expressions(
 ) -> np.ndarray:
     """Expression coefficients ``(T, K_exp)`` for mono audio, at ``fps`` video frames per second.
 
-    Speech features → generic network → person map; frames without voice (see
-    :func:`nvp.vad.voice_activity`, a voice-activity detector) blend smoothly towards the person's rest
-    expression, so pauses, silence, noise and music give a closed mouth.
+    Speech features → generic network → person map → closures (:func:`apply_style`); frames
+    without voice (see :func:`nvp.vad.voice_activity`, a voice-activity detector) blend smoothly towards
+    the person's rest expression, so pauses, silence, noise and music give a resting mouth.
     """
     import torch
 
@@ -170,10 +272,14 @@ def predict_expressions(
     feats = speaker_normalized(extract_features(audio, sample_rate, kind=style.feature_kind))
     # windows are made block by block: all of them at once would be (T, 16, 191) float32, 37 MB a minute
     net.eval()
+    raw, closure = [], []
     with torch.no_grad():
-        blocks = iter_frame_windows(feats, fps, num_frames, block=WINDOW_BLOCK)
-        raw = [net.per_frame(torch.from_numpy(w)) for w in blocks]
+        for w in iter_frame_windows(feats, fps, num_frames, block=WINDOW_BLOCK):
+            r, c = net.frame_outputs(torch.from_numpy(w))
+            raw.append(r)
+            if c is not None:
+                closure.append(torch.sigmoid(c))
         audio_exp = net.smooth(torch.cat(raw)) if raw else torch.zeros(0, net.cfg.audio_exp_dim)
-    expr = style.person_map.apply(audio_exp.numpy())
-    voice = voice_activity(audio, sample_rate, fps, len(expr))[:, None]
-    return (style.rest_expression + voice * (expr - style.rest_expression)).astype(np.float32)
+    closure_p = torch.cat(closure).numpy() if closure else None
+    voice = voice_activity(audio, sample_rate, fps, len(audio_exp))
+    return apply_style(style, audio_exp.numpy(), closure_p, voice)

@@ -3,15 +3,14 @@
     python scripts/eval_lipsync.py [--set test] [--cache /tmp/nvp-cache] [--out out/eval_lipsync]
 
 Per video of the chosen split (default: test, people never used for training or choosing anything): the
-person map is solved on the first 80 % of the frames (as ``nvp.app.train_audio2exp.evaluate_person``), the
-last 20 % is predicted from audio by the shipped phoneme network, and the tracked mesh's inner-lip gap of
-the prediction is compared with the tracked gap of the real frames (expression level; nothing is rendered).
-The predicted expressions blend towards the person's rest mouth where there is no voice, by one of three
-gates: none (the network alone), the old loudness gate (``nvp.vad.energy_voice_activity``) and the voice
-activity detector (``nvp.vad.voice_activity``, what ``nvp dub`` uses). The held-out audio is used clean and
-with white noise mixed in at 10 and 0 dB SNR (noise level relative to the clean held-out speech's active
-level); features and gates then see the noisy audio, while the truth (real mouth, bilabial frames, pauses)
-comes from the real video and its clean audio.
+person's style is made from the first 80 % of the frames exactly as ``nvp fit`` makes it
+(``nvp.person.style_from_sample`` with the voice activity of that part), the last 20 % is predicted from
+audio as ``nvp dub`` predicts it (``nvp.person.apply_style``: network, person map, closure head, voice
+activity of ``nvp.vad.voice_activity``), and the tracked mesh's inner-lip gap of the prediction is compared
+with the tracked gap of the real frames (expression level; nothing is rendered). The held-out audio is used
+clean and with white noise mixed in at 10 and 0 dB SNR (noise level relative to the clean held-out speech's
+active level); features and voice activity then see the noisy audio, while the truth (real mouth, bilabial
+frames, pauses) comes from the real video and its clean audio.
 
 Metrics (``nvp.metrics``), output next to the real video's own number where one exists:
 
@@ -23,8 +22,12 @@ Metrics (``nvp.metrics``), output next to the real video's own number where one 
   over videos (closed bilabial frames / bilabial frames); the real video's rate is the target;
 - opening correlation (predicted vs tracked gap) and opening range (p95 of the predicted gap / p95 real);
 - pauses (runs >= 0.3 s of clean-audio frames with speech probability < 0.5): fraction of pause frames
-  with the gap at or below the resting level (``min + 0.3 (p95 - min)``), pooled; and the mouth's motion
-  in pauses relative to speech (mean |frame-to-frame change of the gap|, pauses / speech).
+  with the gap at or below the resting level (``min + 0.3 (p95 - min)``), pooled; the fraction of pause
+  frames where the mouth rests (within 5 % of the real p95 gap of the person's rest mouth, or below the
+  resting level); and the mouth's motion in pauses relative to speech (mean |frame-to-frame change of the
+  gap|, pauses / speech);
+- jitter ratio (mean |second difference| of the gap, output / real) and the audio-visual offset in frames
+  (``nvp.metrics.av_offset`` of the two gaps; positive: the output is late), median over videos.
 
 Tracking and features are cached under ``--cache`` (``nvp.app.corpus.load_sample``).
 """
@@ -41,14 +44,16 @@ from pathlib import Path
 
 import numpy as np
 
+from nvp import person
 from nvp.app.corpus import load_sample
 from nvp.app.report import markdown_table
-from nvp.audio2exp import audio_expressions, load_net, solve_person_map
+from nvp.audio2exp import load_net
 from nvp.audio_features import extract_features, phoneme_labels, speaker_normalized
 from nvp.face_model import default_face_model
 from nvp.media import read_audio
 from nvp.metrics import (
     BILABIAL_LEAD_S,
+    av_offset,
     bilabial_classes,
     bilabial_closure_rate,
     bilabial_frames,
@@ -58,8 +63,8 @@ from nvp.metrics import (
     pause_behaviour,
     pause_mask,
 )
-from nvp.person import pause_expression, rest_expression
-from nvp.vad import energy_voice_activity, frame_speech_probability, rms_envelope_db, voice_activity
+from nvp.person import VideoSample, style_expressions, style_from_sample
+from nvp.vad import frame_speech_probability, rms_envelope_db, voice_activity
 from nvp.windows import frame_windows
 
 HERE = Path(__file__).resolve().parent
@@ -67,7 +72,6 @@ SHARED = HERE.parents[1] / "shared" / "data"
 ASSETS = HERE.parent / "nvp" / "assets"
 SR = 16000
 TRAIN_FRACTION = 0.8
-GATES = {"none": None, "energy gate": energy_voice_activity, "VAD": voice_activity}
 CONDITIONS = {"clean": None, "noise 10 dB": 10.0, "noise 0 dB": 0.0}
 
 
@@ -78,7 +82,7 @@ def active_power(audio: np.ndarray) -> float:
 
 
 def evaluate_video(
-    name: str, lang: str, person: str, args, net, model, labels_idx
+    name: str, lang: str, who_name: str, args, net, manifest, model, labels_idx
 ) -> tuple[dict, list[dict]]:
     video = SHARED / "video" / name
     s = load_sample(video, args.cache, "phonemes", progress=False)
@@ -95,21 +99,27 @@ def evaluate_video(
     closed, rest_lvl = closed_level(gap_all[tr]), closed_level(gap_all[tr], 0.3)
     lead = int(round(BILABIAL_LEAD_S * fps))
     gap_real = np.where(ok, gap_all[te], np.nan)
-    pmap = solve_person_map(audio_expressions(net, s.windows)[tr], seq.expression[tr], 10.0)
-    rest = rest_expression(seq.expression[tr], gap_all[tr])
 
     # truth from the clean audio: what is said (bilabials) and where the pauses are
     post = extract_features(audio, SR, kind="phonemes")
     bil = bilabial_frames(post.values, labels_idx, post.rate, fps, n)[te] & ok
-    voiced = frame_speech_probability(audio, SR, fps, n) >= 0.5
-    if not args.closed_rest:  # what nvp fit does: the person's mouth in the pauses of the fitting part
-        in_pause = pause_expression(seq.expression[tr], voiced[tr], fps)
-        rest = rest if in_pause is None else in_pause
+    prob = frame_speech_probability(audio, SR, fps, n)
+    voiced = prob >= 0.5
+    # the person's style from the first 80 %, as nvp fit makes it
+    fit_part = VideoSample(name, s.windows[:split], seq.head(split))
+    style = style_from_sample(net, manifest, fit_part, model, voiced=voiced[:split])
+    rest_gap = float(model.inner_lip_gap(seq.identity, style.rest_expression[None])[0])
+    rest_tol = 0.05 * float(np.nanpercentile(gap_all[tr], 95))
     pauses, speech = pause_mask(voiced, fps, 0.3)[te] & ok, voiced[te] & ok
+
+    def resting(gap: np.ndarray) -> int:
+        g = gap[pauses]
+        return int(np.sum((g <= rest_lvl) | (np.abs(g - rest_gap) <= rest_tol)))
+
     real = {
         "video": name,
         "language": lang,
-        "person": person,
+        "person": who_name,
         "test_frames": int(ok.sum()),
         "bilabial_frames": int(bil.sum()),
         "bilabial_closed": int(round(bilabial_closure_rate(gap_real, bil, closed, lead) * bil.sum()))
@@ -118,6 +128,7 @@ def evaluate_video(
         "pause_frames": int(pauses.sum()),
         **{k: v for k, v in pause_behaviour(gap_real, pauses, speech, rest_lvl).items()},
         "pause_closed": int(np.sum(gap_real[pauses] <= rest_lvl)),
+        "pause_resting": resting(gap_real),
     }
 
     rows = []
@@ -134,31 +145,29 @@ def evaluate_video(
             x[start:] = np.clip(held + noise, -1, 1)
             feats = speaker_normalized(extract_features(x, SR, kind="phonemes"))
             windows = frame_windows(feats, fps, num_frames=n).astype(np.float32)
-        raw = pmap.apply(audio_expressions(net, windows)[te])
-        for gate, fn in GATES.items():
-            pred = raw
-            if fn is not None:
-                v = fn(x, SR, fps, n)[te, None]
-                pred = rest + v * (raw - rest)
-            gap = model.inner_lip_gap(seq.identity, pred)
-            varies = gap[ok].std() > 1e-9 and gap_real[ok].std() > 1e-9
-            rate = bilabial_closure_rate(gap, bil, closed, lead) if bil.any() else float("nan")
-            pb = pause_behaviour(np.where(ok, gap, np.nan), pauses, speech, rest_lvl)
-            rows.append(
-                {
-                    "video": name,
-                    "language": lang,
-                    "person": person,
-                    "condition": cond,
-                    "gate": gate,
-                    **closure_f1(gap[ok], gap_real[ok], closed),
-                    "opening_corr": float(np.corrcoef(gap[ok], gap_real[ok])[0, 1]) if varies else 0.0,
-                    "opening_range_ratio": opening_range_ratio(gap[ok], gap_real[ok]),
-                    "bilabial_closed": int(round(rate * bil.sum())) if bil.any() else 0,
-                    "pause_closed": int(np.sum(gap[pauses] <= rest_lvl)),
-                    "pause_motion_ratio": pb["pause_motion_ratio"],
-                }
-            )
+        pred = style_expressions(style, net, windows, voice_activity(x, SR, fps, n))[te]
+        gap = model.inner_lip_gap(seq.identity, pred)
+        varies = gap[ok].std() > 1e-9 and gap_real[ok].std() > 1e-9
+        rate = bilabial_closure_rate(gap, bil, closed, lead) if bil.any() else float("nan")
+        pb = pause_behaviour(np.where(ok, gap, np.nan), pauses, speech, rest_lvl)
+        d2 = np.abs(np.diff(gap_real[ok], 2)).mean()
+        rows.append(
+            {
+                "video": name,
+                "language": lang,
+                "person": who_name,
+                "condition": cond,
+                **closure_f1(gap[ok], gap_real[ok], closed),
+                "opening_corr": float(np.corrcoef(gap[ok], gap_real[ok])[0, 1]) if varies else 0.0,
+                "opening_range_ratio": opening_range_ratio(gap[ok], gap_real[ok]),
+                "jitter_ratio": float(np.abs(np.diff(gap[ok], 2)).mean() / d2) if d2 > 0 else float("nan"),
+                "av_offset": av_offset(np.where(ok, gap, np.nan), gap_real)[0] if varies else 0,
+                "bilabial_closed": int(round(rate * bil.sum())) if bil.any() else 0,
+                "pause_closed": int(np.sum(gap[pauses] <= rest_lvl)),
+                "pause_resting": resting(gap),
+                "pause_motion_ratio": pb["pause_motion_ratio"],
+            }
+        )
     return real, rows
 
 
@@ -166,28 +175,34 @@ def _f(x: float, digits: int = 3) -> str:
     return "nan" if not np.isfinite(x) else f"{x:.{digits}f}"
 
 
+def pooled(rows: list[dict], key: str, total: int) -> float:
+    return sum(r[key] for r in rows) / total if total else float("nan")
+
+
+def _both(out: list[dict], real: list[dict], key: str, total: int) -> str:
+    """Pooled rate of the output rows, then of the real rows in parentheses."""
+    return f"{_f(pooled(out, key, total))} ({_f(pooled(real, key, total))})"
+
+
 def summarise(reals: list[dict], rows: list[dict], key) -> list[dict]:
-    """Rows per (group, condition, gate): pooled bilabial and pause rates, means over videos otherwise."""
+    """Rows per (group, condition): pooled bilabial and pause rates, means over videos otherwise."""
     real_by = {r["video"]: r for r in reals}
     groups: dict[tuple, list[dict]] = defaultdict(list)
     for r in rows:
-        groups[(key(r), r["condition"], r["gate"])].append(r)
+        groups[(key(r), r["condition"])].append(r)
     out = []
-    for (g, cond, gate), sel in groups.items():
+    for (g, cond), sel in groups.items():
         rl = [real_by[r["video"]] for r in sel]
         bil = sum(r["bilabial_frames"] for r in rl)
         pf = sum(r["pause_frames"] for r in rl)
-        b_out = sum(r["bilabial_closed"] for r in sel) / bil if bil else float("nan")
-        b_real = sum(r["bilabial_closed"] for r in rl) / bil if bil else float("nan")
-        p_out = sum(r["pause_closed"] for r in sel) / pf if pf else float("nan")
-        p_real = sum(r["pause_closed"] for r in rl) / pf if pf else float("nan")
+
+        b_out, b_real = pooled(sel, "bilabial_closed", bil), pooled(rl, "bilabial_closed", bil)
         mot_out = np.nanmean([r["pause_motion_ratio"] for r in sel]) if pf else float("nan")
         mot_real = np.nanmean([r["pause_motion_ratio"] for r in rl]) if pf else float("nan")
         out.append(
             {
                 "group": g,
                 "condition": cond,
-                "gate": gate,
                 "videos": len(sel),
                 "closure P": _f(np.mean([r["closure_precision"] for r in sel])),
                 "closure R": _f(np.mean([r["closure_recall"] for r in sel])),
@@ -196,7 +211,10 @@ def summarise(reals: list[dict], rows: list[dict], key) -> list[dict]:
                 "bilabial ratio": _f(b_out / b_real if b_real else float("nan"), 2),
                 "opening corr": _f(np.mean([r["opening_corr"] for r in sel])),
                 "opening range": _f(np.nanmean([r["opening_range_ratio"] for r in sel]), 2),
-                "pause closed (real)": f"{_f(p_out)} ({_f(p_real)})",
+                "jitter ratio": _f(np.nanmean([r["jitter_ratio"] for r in sel]), 2),
+                "AV offset (median)": f"{np.median([r['av_offset'] for r in sel]):+.0f}",
+                "pause closed (real)": _both(sel, rl, "pause_closed", pf),
+                "pause resting (real)": _both(sel, rl, "pause_resting", pf),
                 "pause motion (real)": f"{_f(mot_out, 2)} ({_f(mot_real, 2)})",
                 "bilabial / pause frames": f"{bil} / {pf}",
             }
@@ -213,9 +231,22 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=Path("out/eval_lipsync"))
     ap.add_argument("--videos", nargs="*", help="only these clips of the set")
     ap.add_argument(
-        "--closed-rest", action="store_true", help="rest = most closed mouth (before: the mouth in pauses)"
+        "--closure-ramp",
+        type=float,
+        nargs=2,
+        metavar=("LO", "HI"),
+        help="override nvp.person.CLOSURE_RAMP (choose it on the validation set, never on test)",
+    )
+    ap.add_argument(
+        "--range-gain-max",
+        type=float,
+        help="override the upper limit of nvp.person.RANGE_GAIN_LIMITS (1: off)",
     )
     args = ap.parse_args(argv)
+    if args.closure_ramp:
+        person.CLOSURE_RAMP = tuple(args.closure_ramp)
+    if args.range_gain_max:
+        person.RANGE_GAIN_LIMITS = (1.0, args.range_gain_max)
     if not SHARED.is_dir():
         print(f"no evaluation data: {SHARED} does not exist")
         return 0
@@ -232,8 +263,8 @@ def main(argv: list[str] | None = None) -> int:
     reals, rows = [], []
     t0 = time.perf_counter()
     for i, name in enumerate(names):
-        person, lang = who[name]
-        real, r = evaluate_video(name, lang, person, args, net, model, labels_idx)
+        who_name, lang = who[name]
+        real, r = evaluate_video(name, lang, who_name, args, net, manifest, model, labels_idx)
         reals.append(real)
         rows += r
         print(
@@ -242,13 +273,9 @@ def main(argv: list[str] | None = None) -> int:
 
     overall = summarise(reals, rows, key=lambda r: f"all {args.set}")
     per_lang = summarise(reals, [r for r in rows if r["condition"] == "clean"], key=lambda r: r["language"])
-    per_lang.sort(key=lambda r: (r["group"], r["gate"]))
-    per_video = summarise(
-        reals,
-        [r for r in rows if r["condition"] == "clean" and r["gate"] != "none"],
-        key=lambda r: r["video"],
-    )
-    per_video.sort(key=lambda r: (r["group"], r["gate"]))
+    per_lang.sort(key=lambda r: r["group"])
+    per_video = summarise(reals, [r for r in rows if r["condition"] == "clean"], key=lambda r: r["video"])
+    per_video.sort(key=lambda r: r["group"])
     cols = list(overall[0])
     people = len({r["person"] for r in reals})
     text = (

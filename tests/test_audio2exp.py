@@ -15,6 +15,7 @@ from nvp.audio2exp import (
     ExpressionFilter,
     PerFrameNet,
     VertexMetric,
+    closure_probability,
     load_net,
     save_net,
     solve_person_map,
@@ -160,3 +161,34 @@ def test_save_load_round_trip(tmp_path):
     with torch.no_grad():
         torch.testing.assert_close(back.sequence(x), net.eval().sequence(x))
     assert m["note"] == 1
+
+
+def test_closure_head_outputs_and_round_trip(tmp_path):
+    cfg = dataclasses.replace(CFG, closure_head=True)
+    net = Audio2ExpressionNet(cfg).eval()
+    x = torch.randn(20, 16, 12)
+    raw, logits = net.frame_outputs(x)
+    assert raw.shape == (20, 32) and logits.shape == (20,)
+    torch.testing.assert_close(raw, net.per_frame(x))  # the head changes nothing of the expressions
+    p = closure_probability(net, x.numpy())
+    assert p.shape == (20,) and np.all((p > 0) & (p < 1))
+    save_net(net, tmp_path / "m", {})
+    back, _ = load_net(tmp_path / "m.json")
+    np.testing.assert_allclose(closure_probability(back, x.numpy()), p, rtol=1e-6)
+    assert closure_probability(Audio2ExpressionNet(CFG), x.numpy()) is None
+
+
+def test_closure_head_learns_when_the_lips_close(face_model, tmp_path):
+    from nvp.app.train_audio2exp import closed_frames
+
+    train_set = [fake_sample(face_model, f"v{i}", i, frames=200) for i in range(3)]
+    cfg = Audio2ExpTrainConfig(steps=300, batch=32, lr=3e-3, val_every=300, closure_weight=1.0, net=CFG)
+    train(train_set, train_set[:1], face_model, cfg, tmp_path / "a", progress=False)
+    net, _ = load_net(tmp_path / "a" / "best.json")
+    assert net.cfg.closure_head
+    labels = np.concatenate([closed_frames(s, face_model) for s in train_set]).astype(bool)
+    p = np.concatenate([closure_probability(net, s.windows) for s in train_set])
+    assert 0.05 < labels.mean() < 0.5
+    # the closed frames are told apart from the open ones (area under the ROC curve)
+    auc = (p[labels][:, None] > p[~labels][None]).mean()
+    assert auc > 0.8, auc

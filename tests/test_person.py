@@ -180,3 +180,60 @@ def test_the_rest_mouth_is_the_one_held_in_pauses(face_model):
     voiced[80:83] = False  # 0.12 s: a gap, not a pause
     np.testing.assert_allclose(pause_expression(expr, voiced, fps)[0], 0.3)
     assert pause_expression(expr, np.ones(t, bool), fps) is None  # no pause: the caller keeps its default
+
+
+def test_range_calibration_widens_a_compressed_map_to_the_real_spread():
+    from nvp.person import RANGE_GAIN_LIMITS, range_calibrated
+
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(200, 32)).astype(np.float32)
+    pm = PersonMap(rng.normal(0, 0.1, (K, 32)).astype(np.float32), np.zeros(K, np.float32))
+
+    def gap(e):
+        return e[:, 0]
+
+    pred = pm.apply(a)
+    real = pred[:, 0].mean() + 1.5 * (pred[:, 0] - pred[:, 0].mean())  # the real mouth opens 1.5× as wide
+    wide, gain = range_calibrated(pm, a, gap, real)
+    assert gain == pytest.approx(1.5, rel=1e-3)
+    np.testing.assert_allclose(gap(wide.apply(a)), real, atol=1e-5)
+    np.testing.assert_allclose(wide.apply(a).mean(0), pred.mean(0), atol=1e-5)  # same mean mouth
+    # never narrower, never wider than the limit
+    assert range_calibrated(pm, a, gap, 0.5 * pred[:, 0])[1] == 1.0
+    assert range_calibrated(pm, a, gap, 10 * pred[:, 0])[1] == RANGE_GAIN_LIMITS[1]
+
+
+def test_the_closure_head_closes_the_mouth_and_pauses_rest_it():
+    from nvp.person import apply_style, closed_mouth
+
+    style = _style()
+    closed = np.full(K, 0.5, np.float32)
+    style = PersonStyle(style.person_map, style.rest_expression, "mel", "0" * 64, {}, closed)
+    a = np.random.default_rng(1).normal(size=(4, 32)).astype(np.float32)
+    mapped = style.person_map.apply(a)
+    out = apply_style(style, a, np.array([0.0, 1.0, 0.0, 1.0]), np.array([1.0, 1.0, 0.0, 0.0]))
+    np.testing.assert_allclose(out[0], mapped[0], atol=1e-6)  # open where the head says open
+    np.testing.assert_allclose(out[1], closed, atol=1e-6)  # closed where it says closed
+    np.testing.assert_allclose(out[2:], np.stack([style.rest_expression] * 2), atol=1e-6)  # no voice: rest
+    # the closed mouth is the mean of the person's closed frames while speaking
+    expr = np.arange(10, dtype=np.float32)[:, None] * np.ones((1, K), np.float32)
+    gap = np.array([0, 0, 0, 0, 5, 5, 5, 5, 9, 9], np.float32)
+    voiced = np.array([0, 1, 1, 1, 1, 1, 1, 1, 1, 1], bool)
+    np.testing.assert_allclose(closed_mouth(expr, gap, voiced), 2.0)
+    np.testing.assert_allclose(closed_mouth(expr, gap), 1.5)
+
+
+def test_style_round_trip_keeps_the_closed_mouth_and_reads_version_1(tmp_path):
+    from nvp.artifact import save_artifact
+
+    s = _style()
+    closed = np.full(K, 0.25, np.float32)
+    with_closed = PersonStyle(s.person_map, s.rest_expression, "mel", "0" * 64, {}, closed)
+    np.testing.assert_array_equal(
+        PersonStyle.load(with_closed.save(tmp_path / "v2")).closed_expression, closed
+    )
+    arrays = {"matrix": s.person_map.matrix, "bias": s.person_map.bias, "rest": s.rest_expression}
+    fields = {"feature_kind": "mel", "audio2exp_sha256": "0" * 64, "info": {}}
+    old = PersonStyle.load(save_artifact(tmp_path / "v1", "person_map", 1, arrays, fields))
+    assert old.closed_expression is None
+    np.testing.assert_array_equal(old.rest_expression, s.rest_expression)

@@ -39,7 +39,13 @@ def _cmd_train_audio2exp(args: argparse.Namespace) -> int:
     train_set, val_set, split = corpus_split(
         Path(args.corpus), args.val, args.exclude, cache, args.features, progress=not args.quiet
     )
-    cfg = Audio2ExpTrainConfig(kind=args.features, steps=args.steps, seed=args.seed, val_every=args.val_every)
+    cfg = Audio2ExpTrainConfig(
+        kind=args.features,
+        steps=args.steps,
+        seed=args.seed,
+        val_every=args.val_every,
+        closure_weight=args.closure_weight,
+    )
     frames = {"train_frames": int(sum(s.valid.sum() for s in train_set))}
     result = train(
         train_set,
@@ -375,6 +381,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--val-every", type=int, default=250, help="steps between validations (the best model is kept)"
     )
     p.add_argument("--seed", type=int, default=0, help="random seed")
+    p.add_argument(
+        "--closure-weight",
+        type=float,
+        default=1.0,
+        help="weight of the closure head's loss (0: no closure head)",
+    )
     p.add_argument("--cache", type=Path, help="tracking/feature cache (default: OUTPUT/cache)")
     p.set_defaults(func=_cmd_train_audio2exp)
 

@@ -33,7 +33,7 @@ from nvp.audio2exp import (
 from nvp.errors import NvpError
 from nvp.face_model import FaceModel
 from nvp.geometry import posed
-from nvp.metrics import closure_f1, interocular_distance
+from nvp.metrics import closed_level, closure_f1, interocular_distance
 from nvp.person import VideoSample, rest_expression
 
 log = logging.getLogger(__name__)
@@ -70,6 +70,9 @@ class Audio2ExpTrainConfig:
     """Steps between validations (and checkpoints)."""
     seed: int = 0
     """Random seed (weights, batches)."""
+    closure_weight: float = 1.0
+    """Weight of the closure head's loss (binary cross-entropy: is the tracked inner-lip gap at or below
+    the video's closed level, ``nvp.metrics.closed_level``); 0 trains no closure head."""
     net: Audio2ExpConfig = field(default_factory=lambda: Audio2ExpConfig(dropout=0.3))
     """Network sizes."""
 
@@ -80,13 +83,20 @@ def _filter_indices(t: np.ndarray, num_frames: int, f: int) -> np.ndarray:
     return np.clip(t[:, None] + offs[None], 0, num_frames - 1)
 
 
-def _predict_triplets(net: Audio2ExpressionNet, windows: torch.Tensor) -> torch.Tensor:
-    """Audio-expressions ``(B, 3, A)`` of frames t-1, t, t+1 from their windows ``(B, 2 + F, W, D)``."""
+def _predict_triplets(
+    net: Audio2ExpressionNet, windows: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Audio-expressions ``(B, 3, A)`` of frames t-1, t, t+1 from their windows ``(B, 2 + F, W, D)``, and
+    the closure logits ``(B, 3)`` of those frames (None without the closure head)."""
     b, n = windows.shape[:2]
     f = net.cfg.filter_window
-    raw = net.per_frame(windows.flatten(0, 1)).view(b, n, -1)
+    raw, closure = net.frame_outputs(windows.flatten(0, 1))
+    raw = raw.view(b, n, -1)
     outs = [net.filter(raw[:, k : k + f])[0] for k in range(3)]
-    return torch.stack(outs, 1)
+    if closure is not None:
+        centre = f // 2  # window index of frame t-1 (see _filter_indices)
+        closure = closure.view(b, n)[:, centre : centre + 3]
+    return torch.stack(outs, 1), closure
 
 
 def evaluate_person(
@@ -149,6 +159,23 @@ def evaluate_person(
     return out
 
 
+def closed_frames(sample: VideoSample, model: FaceModel) -> np.ndarray:
+    """``(T,)`` float32 closure labels of a training video: 1 where the tracked inner-lip gap is at or
+    below the video's closed level (:func:`nvp.metrics.closed_level` of its valid frames)."""
+    gap = model.inner_lip_gap(sample.tracked.identity, sample.expression)
+    return (gap <= closed_level(gap[sample.valid])).astype(np.float32)
+
+
+def _closure_pos_weight(closed: list[torch.Tensor], weight: float) -> torch.Tensor | None:
+    """BCE weight of closed frames: open / closed frame count over the corpus (both classes count
+    equally), None when no closure head is trained."""
+    if weight <= 0:
+        return None
+    shut = float(sum(c.sum() for c in closed))
+    total = float(sum(len(c) for c in closed))
+    return torch.tensor((total - shut) / max(shut, 1.0))
+
+
 def _summary(rows: list[dict[str, float]]) -> dict[str, float]:
     keys = ("mouth_error_iod", "lip_vertex_error_mm", "closure_f1", "opening_corr")
     return {k: float(np.mean([r[k] for r in rows])) for k in keys}
@@ -206,8 +233,16 @@ def train(
     out_dir.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
     net_cfg = cfg.net
-    if net_cfg.feature_dim != train_set[0].windows.shape[2]:
-        net_cfg = Audio2ExpConfig(**{**asdict(net_cfg), "feature_dim": int(train_set[0].windows.shape[2])})
+    if net_cfg.feature_dim != train_set[0].windows.shape[2] or net_cfg.closure_head != (
+        cfg.closure_weight > 0
+    ):
+        net_cfg = Audio2ExpConfig(
+            **{
+                **asdict(net_cfg),
+                "feature_dim": int(train_set[0].windows.shape[2]),
+                "closure_head": cfg.closure_weight > 0,
+            }
+        )
     net = Audio2ExpressionNet(net_cfg)
     # frame-centre feature rows of every training video (each window's middle row covers the audio once)
     centre = net_cfg.window // 2
@@ -225,6 +260,8 @@ def train(
     metric = VertexMetric(model.exp_basis, model.vertex_regions["mouth"], cfg.mouth_weight)
     windows = [torch.from_numpy(s.windows) for s in train_set]
     targets = [torch.from_numpy(s.expression) for s in train_set]
+    closed = [torch.from_numpy(closed_frames(s, model)) for s in train_set]
+    pos_weight = _closure_pos_weight(closed, cfg.closure_weight)
     # items: (video, t) with frames t-1, t, t+1 valid
     items = []
     for v, s in enumerate(train_set):
@@ -256,11 +293,12 @@ def train(
         net.train()
         # batches depend only on (seed, step), so a resumed run continues exactly like an uninterrupted one
         pick = items[np.random.default_rng([cfg.seed, step]).integers(0, len(items), cfg.batch)]
-        wins, tgts, vids = [], [], []
+        wins, tgts, vids, shut = [], [], [], []
         for v, t in pick:
             idx = _filter_indices(np.array([t]), len(windows[v]), f)[0]
             wins.append(windows[v][idx])
             tgts.append(targets[v][t - 1 : t + 2])
+            shut.append(closed[v][t - 1 : t + 2])
             vids.append(v)
         wins = torch.stack(wins)
         if cfg.feature_noise > 0:
@@ -268,10 +306,14 @@ def train(
             wins = wins + cfg.feature_noise * net.per_frame.input_std * torch.randn(
                 wins.shape, generator=noise_rng
             )
-        ae = _predict_triplets(net, wins)  # (B, 3, A)
+        ae, closure_logits = _predict_triplets(net, wins)  # (B, 3, A), (B, 3)
         vids_t = torch.as_tensor(vids)
         pred = torch.einsum("bka,bta->btk", maps[vids_t], ae) + bias[vids_t][:, None]
         loss = metric.loss(pred, torch.stack(tgts), cfg.temporal_weight)
+        if closure_logits is not None:
+            loss = loss + cfg.closure_weight * torch.nn.functional.binary_cross_entropy_with_logits(
+                closure_logits, torch.stack(shut), pos_weight=pos_weight
+            )
         opt.zero_grad()
         loss.backward()
         opt.step()
