@@ -19,7 +19,8 @@ The rule (also written into the file):
 
 Test people must never be used for training, for choosing checkpoints or settings, or for tuning
 thresholds; numbers measured on validation are marked as such. ``video_wide/`` (faces 50-90 px) is not part of
-the split; none of its spokespeople appears in ``video/``.
+the split: its clips are training material only (the shipped network trains on them); none of its
+spokespeople appears in ``video/``.
 """
 
 from __future__ import annotations
