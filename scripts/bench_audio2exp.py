@@ -3,8 +3,8 @@
     python scripts/bench_audio2exp.py [--minutes 10] [--repeats 3] [--kinds phonemes mel]
 
 The measured path is what ``nvp dub`` runs before rendering (``nvp.person.predict_expressions``): speech
-features → per-frame windows at 25 fps → shipped Audio2ExpressionNet (per-frame net + temporal filter) →
-person map → voice gate → expression coefficients.
+features → per-frame windows at 25 fps → shipped Audio2ExpressionNet (per-frame net + temporal filter, and
+its closure head when it has one) → person map → closures → voice gate → expression coefficients.
 
 1. Speed on a real 19.8 s English clip (``../shared/data/audio/latentsync__demo2_audio.wav``) when
    ../shared is present, otherwise on synthetic syllable-like audio of the same length; best of
@@ -48,7 +48,8 @@ def _style(kind: str):
     pmap = PersonMap(
         rng.normal(0, 0.1, (k, net.cfg.audio_exp_dim)).astype(np.float32), np.zeros(k, np.float32)
     )
-    return net, PersonStyle(pmap, np.zeros(k, np.float32), kind, manifest["sha256"], {})
+    closed = np.zeros(k, np.float32) if net.closure is not None else None  # the closure path runs too
+    return net, PersonStyle(pmap, np.zeros(k, np.float32), kind, manifest["sha256"], {}, closed)
 
 
 def speed(audio: np.ndarray, kind: str, repeats: int) -> dict:
