@@ -38,11 +38,14 @@ class VideoSample:
         name: file name of the video.
         windows: ``(T, W, D)`` float32 speech-feature windows, one per video frame.
         tracked: the video's ``TrackedSequence`` (``T`` frames; expressions are the regression target).
+        noisy: more ``(T, W, D)`` windows of the same frames, from the audio with noise mixed in (training
+            augmentation; may be empty).
     """
 
     name: str
     windows: np.ndarray
     tracked: TrackedSequence
+    noisy: tuple[np.ndarray, ...] = ()
 
     @property
     def expression(self) -> np.ndarray:

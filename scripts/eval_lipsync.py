@@ -64,7 +64,7 @@ from nvp.metrics import (
     pause_mask,
 )
 from nvp.person import VideoSample, style_expressions, style_from_sample
-from nvp.vad import frame_speech_probability, rms_envelope_db, voice_activity
+from nvp.vad import frame_speech_probability, voice_activity, with_white_noise
 from nvp.windows import frame_windows
 
 HERE = Path(__file__).resolve().parent
@@ -73,12 +73,6 @@ ASSETS = HERE.parent / "nvp" / "assets"
 SR = 16000
 TRAIN_FRACTION = 0.8
 CONDITIONS = {"clean": None, "noise 10 dB": 10.0, "noise 0 dB": 0.0}
-
-
-def active_power(audio: np.ndarray) -> float:
-    """Mean power of the 20 ms blocks within 30 dB of the loud end (95th percentile)."""
-    env = rms_envelope_db(audio, SR, 0.02)
-    return float(np.mean(10 ** (env[env > np.percentile(env, 95) - 30] / 10)))
 
 
 def evaluate_video(
@@ -138,11 +132,8 @@ def evaluate_video(
         x = audio
         windows = s.windows
         if snr is not None:
-            held = audio[start:]
-            noise = np.random.default_rng(seed).standard_normal(len(held))
-            noise *= np.sqrt(active_power(held) / 10 ** (snr / 10) / np.mean(noise**2))
             x = audio.copy()
-            x[start:] = np.clip(held + noise, -1, 1)
+            x[start:] = with_white_noise(audio[start:], SR, snr, seed)
             feats = speaker_normalized(extract_features(x, SR, kind="phonemes"))
             windows = frame_windows(feats, fps, num_frames=n).astype(np.float32)
         pred = style_expressions(style, net, windows, voice_activity(x, SR, fps, n))[te]

@@ -221,3 +221,20 @@ def test_matches_the_packages_torchscript_model():
     with torch.no_grad():
         ref = [jit(pad[i : i + vad.CHUNK], SR)[0, 0].item() for i in range(0, len(pad), vad.CHUNK)]
     np.testing.assert_allclose(ours, ref, atol=2e-5)
+
+
+def test_white_noise_is_mixed_at_the_asked_snr_and_reproducibly():
+    from nvp.vad import with_white_noise
+
+    rng = np.random.default_rng(0)
+    sr = 16000
+    speech = (0.1 * np.sin(2 * np.pi * 200 * np.arange(2 * sr) / sr)).astype(np.float32)
+    speech[sr // 2 : sr] = 0  # a pause does not count towards the speech's level
+    for snr in (20.0, 0.0):
+        noisy = with_white_noise(speech, sr, snr, seed=3)
+        noise = noisy.astype(np.float64) - speech
+        active = np.mean(speech[speech != 0].astype(np.float64) ** 2)
+        assert 10 * np.log10(active / np.mean(noise**2)) == pytest.approx(snr, abs=0.3)
+        np.testing.assert_array_equal(noisy, with_white_noise(speech, sr, snr, seed=3))
+    assert not np.array_equal(with_white_noise(speech, sr, 0, 3), with_white_noise(speech, sr, 0, 4))
+    assert np.abs(with_white_noise(rng.uniform(-1, 1, sr), sr, -20, 1)).max() <= 1.0

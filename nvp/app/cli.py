@@ -36,8 +36,9 @@ def _cmd_train_audio2exp(args: argparse.Namespace) -> int:
     from nvp.face_model import default_face_model
 
     cache = Path(args.cache) if args.cache else Path(args.output) / "cache"
+    snrs = tuple(args.noise_snr or ())
     train_set, val_set, split = corpus_split(
-        Path(args.corpus), args.val, args.exclude, cache, args.features, progress=not args.quiet
+        Path(args.corpus), args.val, args.exclude, cache, args.features, not args.quiet, snrs
     )
     cfg = Audio2ExpTrainConfig(
         kind=args.features,
@@ -45,6 +46,7 @@ def _cmd_train_audio2exp(args: argparse.Namespace) -> int:
         seed=args.seed,
         val_every=args.val_every,
         closure_weight=args.closure_weight,
+        noise_snrs=snrs,
     )
     frames = {"train_frames": int(sum(s.valid.sum() for s in train_set))}
     result = train(
@@ -386,6 +388,13 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         default=1.0,
         help="weight of the closure head's loss (0: no closure head)",
+    )
+    p.add_argument(
+        "--noise-snr",
+        type=float,
+        nargs="*",
+        metavar="DB",
+        help="also train on the audio with white noise at these SNRs, e.g. 20 10 0 (augmentation)",
     )
     p.add_argument("--cache", type=Path, help="tracking/feature cache (default: OUTPUT/cache)")
     p.set_defaults(func=_cmd_train_audio2exp)

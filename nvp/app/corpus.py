@@ -43,27 +43,47 @@ def tracked_cached(video: Path, cache: Path, progress: bool = True) -> TrackedSe
     return seq
 
 
-def features_cached(video: Path, cache: Path, kind: str, fps: float, num_frames: int) -> np.ndarray:
-    """Feature windows ``(T, W, D)`` of the video's audio track, kept in ``cache/features`` (an artifact:
-    written atomically; a damaged entry is recomputed)."""
-    from nvp.audio_features import features_from_file, speaker_normalized
+def features_cached(
+    video: Path, cache: Path, kind: str, fps: float, num_frames: int, snr_db: float | None = None
+) -> np.ndarray:
+    """Feature windows ``(T, W, D)`` of the video's audio track — with white noise mixed in at ``snr_db``
+    when given (:func:`nvp.vad.with_white_noise`, seeded by the file's content) — kept in
+    ``cache/features`` (an artifact: written atomically; a damaged entry is recomputed)."""
+    from nvp.audio_features import SAMPLE_RATE, extract_features, speaker_normalized
+    from nvp.media import read_audio
+    from nvp.vad import with_white_noise
     from nvp.windows import frame_windows
 
-    path = cache / "features" / f"{cache_key(video)}_{kind}_{fps:.3f}_{num_frames}_sn.json"
+    key = cache_key(video)
+    noise = "" if snr_db is None else f"_snr{snr_db:g}"
+    path = cache / "features" / f"{key}_{kind}_{fps:.3f}_{num_frames}_sn{noise}.json"
     try:
         return load_artifact(path, "feature_windows", 1).arrays["windows"]
     except (FormatError, KeyError):
         pass
-    feats = speaker_normalized(features_from_file(video, kind=kind))
+    audio = read_audio(video, SAMPLE_RATE)
+    if snr_db is not None:
+        audio = with_white_noise(audio, SAMPLE_RATE, snr_db, int(key[-16:], 16) % 2**32)
+    feats = speaker_normalized(extract_features(audio, SAMPLE_RATE, kind=kind))
     windows = frame_windows(feats, fps, num_frames=num_frames).astype(np.float32)
-    save_artifact(path, "feature_windows", 1, {"windows": windows}, {"video": video.name, "kind": kind})
+    fields = {"video": video.name, "kind": kind, "snr_db": snr_db}
+    save_artifact(path, "feature_windows", 1, {"windows": windows}, fields)
     return windows
 
 
-def load_sample(video: Path, cache: Path, kind: str = "phonemes", progress: bool = True) -> VideoSample:
+def load_sample(
+    video: Path,
+    cache: Path,
+    kind: str = "phonemes",
+    progress: bool = True,
+    noise_snrs: tuple[float, ...] = (),
+) -> VideoSample:
+    """The video's tracking and feature windows (cached), plus windows of its audio with white noise at
+    each of ``noise_snrs`` dB as ``VideoSample.noisy`` (training augmentation)."""
     seq = tracked_cached(video, cache, progress)
     windows = features_cached(video, cache, kind, seq.fps, seq.num_frames)
-    return VideoSample(name=video.name, windows=windows, tracked=seq)
+    noisy = tuple(features_cached(video, cache, kind, seq.fps, seq.num_frames, snr) for snr in noise_snrs)
+    return VideoSample(name=video.name, windows=windows, tracked=seq, noisy=noisy)
 
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".mkv", ".avi", ".webm", ".m4v")
@@ -76,11 +96,13 @@ def corpus_split(
     cache: Path,
     kind: str,
     progress: bool = True,
+    noise_snrs: tuple[float, ...] = (),
 ) -> tuple[list[VideoSample], list[VideoSample], dict]:
     """The videos of ``folder`` as training and validation samples (tracked and featurised, cached), and
     the split as a dict for the model's manifest. ``val``: file names of validation videos (default: five
     spread over the sorted list); ``exclude``: file names left out; a video that cannot be used (no face,
-    no audio) is skipped with a warning."""
+    no audio) is skipped with a warning. Training videos also get windows of their audio with white noise
+    at each of ``noise_snrs`` dB (:func:`load_sample`)."""
     videos = sorted(p for p in Path(folder).iterdir() if p.suffix.lower() in VIDEO_SUFFIXES)
     if not videos:
         raise NvpError(f"no videos ({', '.join(VIDEO_SUFFIXES)}) in {folder}")
@@ -96,7 +118,8 @@ def corpus_split(
         if v.name in excluded:
             continue
         try:
-            samples.append(load_sample(v, cache, kind, progress=progress))
+            snrs = () if v.name in val_names else tuple(noise_snrs)
+            samples.append(load_sample(v, cache, kind, progress=progress, noise_snrs=snrs))
         except NvpError as e:
             log.warning("skipping %s: %s", v.name, e)
     train_set = [s for s in samples if s.name not in val_names]

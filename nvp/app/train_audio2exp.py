@@ -70,6 +70,10 @@ class Audio2ExpTrainConfig:
     """Steps between validations (and checkpoints)."""
     seed: int = 0
     """Random seed (weights, batches)."""
+    noise_snrs: tuple[float, ...] = ()
+    """SNRs in dB of the noisy copies of the training videos' audio (``VideoSample.noisy``, made by the
+    corpus loader); each batch item reads the clean or one of the noisy feature windows with equal
+    probability, so speech in noise is mapped to the same mouth."""
     closure_weight: float = 1.0
     """Weight of the closure head's loss (binary cross-entropy: is the tracked inner-lip gap at or below
     the video's closed level, ``nvp.metrics.closed_level``); 0 trains no closure head."""
@@ -258,7 +262,7 @@ def train(
         ]
     )
     metric = VertexMetric(model.exp_basis, model.vertex_regions["mouth"], cfg.mouth_weight)
-    windows = [torch.from_numpy(s.windows) for s in train_set]
+    windows = [[torch.from_numpy(w) for w in (s.windows, *s.noisy)] for s in train_set]
     targets = [torch.from_numpy(s.expression) for s in train_set]
     closed = [torch.from_numpy(closed_frames(s, model)) for s in train_set]
     pos_weight = _closure_pos_weight(closed, cfg.closure_weight)
@@ -292,11 +296,14 @@ def train(
     while step < cfg.steps:
         net.train()
         # batches depend only on (seed, step), so a resumed run continues exactly like an uninterrupted one
-        pick = items[np.random.default_rng([cfg.seed, step]).integers(0, len(items), cfg.batch)]
+        rng = np.random.default_rng([cfg.seed, step])
+        pick = items[rng.integers(0, len(items), cfg.batch)]
+        variant = rng.integers(0, 1 << 30, cfg.batch)
         wins, tgts, vids, shut = [], [], [], []
-        for v, t in pick:
-            idx = _filter_indices(np.array([t]), len(windows[v]), f)[0]
-            wins.append(windows[v][idx])
+        for (v, t), k in zip(pick, variant, strict=True):
+            source = windows[v][k % len(windows[v])]  # clean or one of the noisy copies
+            idx = _filter_indices(np.array([t]), len(source), f)[0]
+            wins.append(source[idx])
             tgts.append(targets[v][t - 1 : t + 2])
             shut.append(closed[v][t - 1 : t + 2])
             vids.append(v)
