@@ -18,6 +18,7 @@ temporal term on forward, backward and central differences (λ = 20).
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -235,18 +236,29 @@ def audio_expressions(net: Audio2ExpressionNet, windows: np.ndarray, use_filter:
         return net.sequence(torch.from_numpy(windows), use_filter=use_filter).numpy()
 
 
-def closure_probability(
-    net: Audio2ExpressionNet, windows: np.ndarray, batch: int = 2048
-) -> np.ndarray | None:
-    """``(T,)`` probability that the lips are closed at each frame, from feature windows ``(T, W, D)``
-    (None for a network without the closure head)."""
-    if net.closure is None:
-        return None
+def network_outputs(
+    net: Audio2ExpressionNet, blocks: Iterable[np.ndarray]
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Filtered audio-expressions ``(T, A)`` and closure probabilities ``(T,)`` (None for a network
+    without the closure head) for feature windows ``(T, W, D)`` given as consecutive blocks ``(≤ T, W, D)``
+    (so a long file's windows need not be in memory at once); one pass of the per-frame net, no gradients."""
     net.eval()
+    raw, shut = [], []
     with torch.no_grad():
-        x = torch.from_numpy(windows)
-        logits = [net.frame_outputs(x[s : s + batch])[1] for s in range(0, len(x), batch)]
-        return torch.sigmoid(torch.cat(logits)).numpy() if logits else np.zeros(0, np.float32)
+        for w in blocks:
+            r, c = net.frame_outputs(torch.from_numpy(np.asarray(w)))
+            raw.append(r)
+            if c is not None:
+                shut.append(torch.sigmoid(c))
+        audio_exp = net.smooth(torch.cat(raw)) if raw else torch.zeros(0, net.cfg.audio_exp_dim)
+    if net.closure is None:
+        return audio_exp.numpy(), None
+    return audio_exp.numpy(), torch.cat(shut).numpy() if shut else np.zeros(0, np.float32)
+
+
+def in_blocks(windows: np.ndarray, block: int = 2048) -> list[np.ndarray]:
+    """Feature windows ``(T, W, D)`` as consecutive blocks of at most ``block`` frames (views)."""
+    return [windows[s : s + block] for s in range(0, len(windows), block)]
 
 
 def save_net(net: Audio2ExpressionNet, out: Path, manifest: dict) -> Path:

@@ -16,7 +16,8 @@ from nvp.audio2exp import (
     Audio2ExpressionNet,
     PersonMap,
     audio_expressions,
-    closure_probability,
+    in_blocks,
+    network_outputs,
     solve_person_map,
 )
 from nvp.face_model import FaceModel
@@ -140,8 +141,8 @@ def pause_expression(expression: np.ndarray, voiced: np.ndarray, fps: float) -> 
     return np.median(expression[pauses], 0).astype(np.float32)
 
 
-RANGE_GAIN_LIMITS = (1.0, 2.0)
-"""Bounds of the gain that widens the person map's predictions (see :func:`range_calibrated`). On the
+RANGE_GAIN_MAX = 2.0
+"""Largest gain that widens the person map's predictions (see :func:`range_calibrated`). On the
 validation people (``scripts/eval_lipsync.py --set validation``, the earlier network): opening range
 0.90 → 1.09, closure F1 0.09 → 0.26, opening correlation unchanged (0.49)."""
 CLOSURE_RAMP = (0.5, 0.8)
@@ -152,7 +153,7 @@ its closures better at 10 dB SNR (F1 0.32 vs 0.30)."""
 
 
 def range_calibrated(
-    pmap: PersonMap, audio_exp: np.ndarray, gap_of, real_gap: np.ndarray
+    pmap: PersonMap, audio_exp: np.ndarray, gap_of, real_gap: np.ndarray, max_gain: float = RANGE_GAIN_MAX
 ) -> tuple[PersonMap, float]:
     """The person map with its predictions widened around their mean so that the spread (5th to 95th
     percentile) of the predicted inner-lip gap on the person's own frames matches the tracked one.
@@ -160,12 +161,12 @@ def range_calibrated(
     A least-squares map predicts the mean of what the audio allows, so its openings are compressed towards
     the person's average mouth. Args: ``audio_exp`` ``(T, A)`` the network's outputs on the person's
     frames, ``gap_of`` a function from expressions ``(T, K_exp)`` to inner-lip gaps ``(T,)``, ``real_gap``
-    ``(T,)`` their tracked gaps. The gain is kept within :data:`RANGE_GAIN_LIMITS`; returns it too.
+    ``(T,)`` their tracked gaps. The gain is kept within 1 … ``max_gain`` (1: no widening); returns it too.
     """
     pred = pmap.apply(audio_exp)
     spread = np.percentile(gap_of(pred), 95) - np.percentile(gap_of(pred), 5)
     real = np.percentile(real_gap, 95) - np.percentile(real_gap, 5)
-    gain = float(np.clip(real / spread, *RANGE_GAIN_LIMITS)) if spread > 1e-9 else 1.0
+    gain = float(np.clip(real / spread, 1.0, max_gain)) if spread > 1e-9 else 1.0
     mean = pred.mean(0)
     matrix = (gain * pmap.matrix).astype(np.float32)
     bias = (gain * pmap.bias + (1 - gain) * mean).astype(np.float32)
@@ -193,11 +194,12 @@ def style_from_sample(
     model: FaceModel,
     ridge: float = 10.0,
     voiced: np.ndarray | None = None,
+    max_gain: float = RANGE_GAIN_MAX,
 ) -> PersonStyle:
     """A person's style from their tracked video.
 
     * person map: closed-form ridge map on all valid frames, widened so that the spread of its mouth
-      openings on these frames matches the tracked one (:func:`range_calibrated`);
+      openings on these frames matches the tracked one (:func:`range_calibrated` with ``max_gain``);
     * rest expression: the person's mouth in their pauses when ``voiced`` ``(T,)`` (see
       :func:`voiced_frames`) shows enough of them, else their most closed mouth. Measured on the
       validation people of ``scripts/data_split.json`` (``scripts/eval_lipsync.py``): pause frames at rest
@@ -211,7 +213,7 @@ def style_from_sample(
     expression = sample.expression[ok]
     gap = model.inner_lip_gap(identity, expression)
     pmap = solve_person_map(audio_exp, expression, ridge)
-    pmap, gain = range_calibrated(pmap, audio_exp, lambda e: model.inner_lip_gap(identity, e), gap)
+    pmap, gain = range_calibrated(pmap, audio_exp, lambda e: model.inner_lip_gap(identity, e), gap, max_gain)
     rest, kind = rest_expression(expression, gap), "closed"
     if voiced is not None:
         in_pause = pause_expression(expression, voiced[ok], sample.tracked.fps)
@@ -224,25 +226,30 @@ def style_from_sample(
     return PersonStyle(pmap, rest, manifest["feature_kind"], manifest["sha256"], info, closed)
 
 
-def closure_weight(probability: np.ndarray) -> np.ndarray:
-    """``(T,)`` blend weights towards the closed mouth for closure probabilities ``(T,)``
-    (:data:`CLOSURE_RAMP`)."""
-    lo, hi = CLOSURE_RAMP
+def closure_weight(probability: np.ndarray, ramp: tuple[float, float] = CLOSURE_RAMP) -> np.ndarray:
+    """``(T,)`` blend weights towards the closed mouth for closure probabilities ``(T,)``: 0 at ``ramp[0]``
+    and below, 1 at ``ramp[1]`` and above, linear between (:data:`CLOSURE_RAMP`)."""
+    lo, hi = ramp
     return np.clip((np.asarray(probability, np.float64) - lo) / (hi - lo), 0.0, 1.0)
 
 
 def apply_style(
-    style: PersonStyle, audio_exp: np.ndarray, closure: np.ndarray | None, voice: np.ndarray | None
+    style: PersonStyle,
+    audio_exp: np.ndarray,
+    closure: np.ndarray | None,
+    voice: np.ndarray | None,
+    ramp: tuple[float, float] = CLOSURE_RAMP,
 ) -> np.ndarray:
     """Expression coefficients ``(T, K_exp)`` of a person from the generic network's outputs.
 
     Audio-expressions ``(T, A)`` → person map; where the closure head's probabilities ``closure`` ``(T,)``
-    say the lips are closed, the mouth blends to the person's closed mouth (:func:`closure_weight`); where
+    say the lips are closed, the mouth blends to the person's closed mouth (:func:`closure_weight` with
+    ``ramp``); where
     ``voice`` ``(T,)`` in [0, 1] (see :func:`nvp.vad.voice_activity`) is low, it blends to their rest mouth.
     """
     expr = style.person_map.apply(audio_exp)
     if style.closed_expression is not None and closure is not None:
-        w = closure_weight(closure)[:, None]
+        w = closure_weight(closure, ramp)[:, None]
         expr = expr + w * (style.closed_expression - expr)
     if voice is not None:
         expr = style.rest_expression + np.asarray(voice)[:, None] * (expr - style.rest_expression)
@@ -250,10 +257,14 @@ def apply_style(
 
 
 def style_expressions(
-    style: PersonStyle, net: Audio2ExpressionNet, windows: np.ndarray, voice: np.ndarray | None = None
+    style: PersonStyle,
+    net: Audio2ExpressionNet,
+    windows: np.ndarray,
+    voice: np.ndarray | None = None,
+    ramp: tuple[float, float] = CLOSURE_RAMP,
 ) -> np.ndarray:
     """:func:`apply_style` for feature windows ``(T, W, D)`` held in memory (evaluations)."""
-    return apply_style(style, audio_expressions(net, windows), closure_probability(net, windows), voice)
+    return apply_style(style, *network_outputs(net, in_blocks(windows, WINDOW_BLOCK)), voice, ramp)
 
 
 def predict_expressions(
@@ -270,23 +281,13 @@ def predict_expressions(
     without voice (see :func:`nvp.vad.voice_activity`, a voice-activity detector) blend smoothly towards
     the person's rest expression, so pauses, silence, noise and music give a resting mouth.
     """
-    import torch
-
     from nvp.audio_features import extract_features, speaker_normalized
     from nvp.vad import voice_activity
     from nvp.windows import iter_frame_windows
 
     feats = speaker_normalized(extract_features(audio, sample_rate, kind=style.feature_kind))
     # windows are made block by block: all of them at once would be (T, 16, 191) float32, 37 MB a minute
-    net.eval()
-    raw, closure = [], []
-    with torch.no_grad():
-        for w in iter_frame_windows(feats, fps, num_frames, block=WINDOW_BLOCK):
-            r, c = net.frame_outputs(torch.from_numpy(w))
-            raw.append(r)
-            if c is not None:
-                closure.append(torch.sigmoid(c))
-        audio_exp = net.smooth(torch.cat(raw)) if raw else torch.zeros(0, net.cfg.audio_exp_dim)
-    closure_p = torch.cat(closure).numpy() if closure else None
+    blocks = iter_frame_windows(feats, fps, num_frames, block=WINDOW_BLOCK)
+    audio_exp, closure = network_outputs(net, blocks)
     voice = voice_activity(audio, sample_rate, fps, len(audio_exp))
-    return apply_style(style, audio_exp.numpy(), closure_p, voice)
+    return apply_style(style, audio_exp, closure, voice)

@@ -44,7 +44,6 @@ from pathlib import Path
 
 import numpy as np
 
-from nvp import person
 from nvp.app.corpus import load_sample
 from nvp.app.report import markdown_table
 from nvp.audio2exp import load_net
@@ -63,7 +62,13 @@ from nvp.metrics import (
     pause_behaviour,
     pause_mask,
 )
-from nvp.person import VideoSample, style_expressions, style_from_sample
+from nvp.person import (
+    CLOSURE_RAMP,
+    RANGE_GAIN_MAX,
+    VideoSample,
+    style_expressions,
+    style_from_sample,
+)
 from nvp.vad import frame_speech_probability, voice_activity, with_white_noise
 from nvp.windows import frame_windows
 
@@ -97,11 +102,12 @@ def evaluate_video(
     # truth from the clean audio: what is said (bilabials) and where the pauses are
     post = extract_features(audio, SR, kind="phonemes")
     bil = bilabial_frames(post.values, labels_idx, post.rate, fps, n)[te] & ok
-    prob = frame_speech_probability(audio, SR, fps, n)
-    voiced = prob >= 0.5
+    voiced = frame_speech_probability(audio, SR, fps, n) >= 0.5
     # the person's style from the first 80 %, as nvp fit makes it
     fit_part = VideoSample(name, s.windows[:split], seq.head(split))
-    style = style_from_sample(net, manifest, fit_part, model, voiced=voiced[:split])
+    style = style_from_sample(
+        net, manifest, fit_part, model, voiced=voiced[:split], max_gain=args.range_gain_max
+    )
     rest_gap = float(model.inner_lip_gap(seq.identity, style.rest_expression[None])[0])
     rest_tol = 0.05 * float(np.nanpercentile(gap_all[tr], 95))
     pauses, speech = pause_mask(voiced, fps, 0.3)[te] & ok, voiced[te] & ok
@@ -136,7 +142,7 @@ def evaluate_video(
             x[start:] = with_white_noise(audio[start:], SR, snr, seed)
             feats = speaker_normalized(extract_features(x, SR, kind="phonemes"))
             windows = frame_windows(feats, fps, num_frames=n).astype(np.float32)
-        pred = style_expressions(style, net, windows, voice_activity(x, SR, fps, n))[te]
+        pred = style_expressions(style, net, windows, voice_activity(x, SR, fps, n), args.closure_ramp)[te]
         gap = model.inner_lip_gap(seq.identity, pred)
         varies = gap[ok].std() > 1e-9 and gap_real[ok].std() > 1e-9
         rate = bilabial_closure_rate(gap, bil, closed, lead) if bil.any() else float("nan")
@@ -225,19 +231,14 @@ def main(argv: list[str] | None = None) -> int:
         "--closure-ramp",
         type=float,
         nargs=2,
+        default=CLOSURE_RAMP,
         metavar=("LO", "HI"),
-        help="override nvp.person.CLOSURE_RAMP (choose it on the validation set, never on test)",
+        help="closure probabilities mapped to weights 0 … 1 (choose it on the validation set, never on test)",
     )
     ap.add_argument(
-        "--range-gain-max",
-        type=float,
-        help="override the upper limit of nvp.person.RANGE_GAIN_LIMITS (1: off)",
+        "--range-gain-max", type=float, default=RANGE_GAIN_MAX, help="widest person-map gain (1: no widening)"
     )
     args = ap.parse_args(argv)
-    if args.closure_ramp:
-        person.CLOSURE_RAMP = tuple(args.closure_ramp)
-    if args.range_gain_max:
-        person.RANGE_GAIN_LIMITS = (1.0, args.range_gain_max)
     if not SHARED.is_dir():
         print(f"no evaluation data: {SHARED} does not exist")
         return 0

@@ -20,7 +20,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from nvp import person
 from nvp.app.corpus import load_sample
 from nvp.audio2exp import load_net
 from nvp.audio_features import extract_features, phoneme_labels
@@ -28,7 +27,7 @@ from nvp.face_model import default_face_model
 from nvp.geometry import posed
 from nvp.media import frames_at, read_audio
 from nvp.metrics import bilabial_classes, bilabial_frames
-from nvp.person import VideoSample, style_expressions, style_from_sample
+from nvp.person import RANGE_GAIN_MAX, VideoSample, style_expressions, style_from_sample
 from nvp.vad import frame_speech_probability, voice_activity
 
 HERE = Path(__file__).resolve().parent
@@ -48,14 +47,9 @@ def predictions(video: Path, cache: Path, nets: dict, flat: set[str]) -> tuple:
     model = default_face_model()
     out = {"real": seq.expression}
     for key, (net, manifest) in nets.items():
-        limits = person.RANGE_GAIN_LIMITS
-        if key in flat:
-            person.RANGE_GAIN_LIMITS = (1.0, 1.0)
-        try:
-            part = VideoSample(video.name, s.windows[:split], seq.head(split))
-            style = style_from_sample(net, manifest, part, model, voiced=voiced[:split])
-        finally:
-            person.RANGE_GAIN_LIMITS = limits
+        part = VideoSample(video.name, s.windows[:split], seq.head(split))
+        max_gain = 1.0 if key in flat else RANGE_GAIN_MAX
+        style = style_from_sample(net, manifest, part, model, voiced=voiced[:split], max_gain=max_gain)
         out[key] = style_expressions(style, net, s.windows, voice)
     post = extract_features(audio, SR, kind="phonemes")
     bil = bilabial_frames(post.values, bilabial_classes(phoneme_labels()), post.rate, seq.fps, n)

@@ -15,8 +15,8 @@ from nvp.audio2exp import (
     ExpressionFilter,
     PerFrameNet,
     VertexMetric,
-    closure_probability,
     load_net,
+    network_outputs,
     save_net,
     solve_person_map,
 )
@@ -170,12 +170,12 @@ def test_closure_head_outputs_and_round_trip(tmp_path):
     raw, logits = net.frame_outputs(x)
     assert raw.shape == (20, 32) and logits.shape == (20,)
     torch.testing.assert_close(raw, net.per_frame(x))  # the head changes nothing of the expressions
-    p = closure_probability(net, x.numpy())
+    p = network_outputs(net, [x.numpy()])[1]
     assert p.shape == (20,) and np.all((p > 0) & (p < 1))
     save_net(net, tmp_path / "m", {})
     back, _ = load_net(tmp_path / "m.json")
-    np.testing.assert_allclose(closure_probability(back, x.numpy()), p, rtol=1e-6)
-    assert closure_probability(Audio2ExpressionNet(CFG), x.numpy()) is None
+    np.testing.assert_allclose(network_outputs(back, [x.numpy()])[1], p, rtol=1e-6)
+    assert network_outputs(Audio2ExpressionNet(CFG), [x.numpy()])[1] is None
 
 
 def test_closure_head_learns_when_the_lips_close(face_model, tmp_path):
@@ -187,7 +187,7 @@ def test_closure_head_learns_when_the_lips_close(face_model, tmp_path):
     net, _ = load_net(tmp_path / "a" / "best.json")
     assert net.cfg.closure_head
     labels = np.concatenate([closed_frames(s, face_model) for s in train_set]).astype(bool)
-    p = np.concatenate([closure_probability(net, s.windows) for s in train_set])
+    p = np.concatenate([network_outputs(net, [s.windows])[1] for s in train_set])
     assert 0.05 < labels.mean() < 0.5
     # the closed frames are told apart from the open ones (area under the ROC curve)
     auc = (p[labels][:, None] > p[~labels][None]).mean()

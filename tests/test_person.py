@@ -183,7 +183,7 @@ def test_the_rest_mouth_is_the_one_held_in_pauses(face_model):
 
 
 def test_range_calibration_widens_a_compressed_map_to_the_real_spread():
-    from nvp.person import RANGE_GAIN_LIMITS, range_calibrated
+    from nvp.person import RANGE_GAIN_MAX, range_calibrated
 
     rng = np.random.default_rng(0)
     a = rng.normal(size=(200, 32)).astype(np.float32)
@@ -200,7 +200,7 @@ def test_range_calibration_widens_a_compressed_map_to_the_real_spread():
     np.testing.assert_allclose(wide.apply(a).mean(0), pred.mean(0), atol=1e-5)  # same mean mouth
     # never narrower, never wider than the limit
     assert range_calibrated(pm, a, gap, 0.5 * pred[:, 0])[1] == 1.0
-    assert range_calibrated(pm, a, gap, 10 * pred[:, 0])[1] == RANGE_GAIN_LIMITS[1]
+    assert range_calibrated(pm, a, gap, 10 * pred[:, 0])[1] == RANGE_GAIN_MAX
 
 
 def test_the_closure_head_closes_the_mouth_and_pauses_rest_it():

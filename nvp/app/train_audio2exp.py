@@ -15,7 +15,7 @@ import json
 import logging
 import os
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -236,17 +236,9 @@ def train(
     train_set, val_set = usable_sets(train_set, val_set, cfg.train_fraction)
     out_dir.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
-    net_cfg = cfg.net
-    if net_cfg.feature_dim != train_set[0].windows.shape[2] or net_cfg.closure_head != (
-        cfg.closure_weight > 0
-    ):
-        net_cfg = Audio2ExpConfig(
-            **{
-                **asdict(net_cfg),
-                "feature_dim": int(train_set[0].windows.shape[2]),
-                "closure_head": cfg.closure_weight > 0,
-            }
-        )
+    net_cfg = replace(
+        cfg.net, feature_dim=int(train_set[0].windows.shape[2]), closure_head=cfg.closure_weight > 0
+    )
     net = Audio2ExpressionNet(net_cfg)
     # frame-centre feature rows of every training video (each window's middle row covers the audio once)
     centre = net_cfg.window // 2
