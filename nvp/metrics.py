@@ -199,3 +199,11 @@ def opening_range_ratio(gap: np.ndarray, real_gap: np.ndarray, q: float = 95.0) 
     range; below 1 the mouth opens too little). NaN ignored."""
     real = float(np.nanpercentile(real_gap, q))
     return float(np.nanpercentile(gap, q) / real) if real > 0 else float("nan")
+
+
+def corner_motion_asymmetry(vertices: np.ndarray, left: int, right: int) -> float:
+    """How lopsided a mouth moves: ``(s_l - s_r) / (s_l + s_r)`` where ``s`` is the RMS distance of a mouth
+    corner (vertex ``left`` / ``right`` of ``vertices`` ``(T, V, 3)``, object space) from its mean position
+    over the frames. 0: both corners move alike; ±1: only one moves. NaN for a still mouth."""
+    s = [np.sqrt(np.mean(np.sum((vertices[:, i] - vertices[:, i].mean(0)) ** 2, -1))) for i in (left, right)]
+    return float((s[0] - s[1]) / (s[0] + s[1])) if s[0] + s[1] > 0 else float("nan")

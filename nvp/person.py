@@ -226,6 +226,29 @@ def style_from_sample(
     return PersonStyle(pmap, rest, manifest["feature_kind"], manifest["sha256"], info, closed)
 
 
+def transferred_style(own: PersonStyle, other: PersonStyle) -> PersonStyle:
+    """Person ``other``'s talking style on person ``own``'s face (speaking-style transfer).
+
+    ``other``'s person map and closures decide how the mouth moves (how wide it opens, how often it closes,
+    its asymmetries in motion), as offsets from their closed lips, put onto ``own``'s closed lips:
+    ``e = e_other + (closed_own - closed_other)``, so a closure of ``other`` closes ``own``'s lips exactly;
+    in pauses the mouth rests as ``own``'s does. Styles without a closed mouth (format 1) are anchored at
+    their rest mouths instead. The two styles must come from the same network.
+    """
+    from nvp.errors import NvpError
+
+    if (own.feature_kind, own.audio2exp_sha256) != (other.feature_kind, other.audio2exp_sha256):
+        raise NvpError("the two people's styles were made with different Audio2ExpressionNets; refit one")
+    if own.closed_expression is not None and other.closed_expression is not None:
+        shift = own.closed_expression - other.closed_expression
+    else:
+        shift = own.rest_expression - other.rest_expression
+    closed = None if other.closed_expression is None else (other.closed_expression + shift).astype(np.float32)
+    pmap = PersonMap(matrix=other.person_map.matrix, bias=(other.person_map.bias + shift).astype(np.float32))
+    info = {**other.info, "style_of": other.info.get("video"), "face_of": own.info.get("video")}
+    return PersonStyle(pmap, own.rest_expression, other.feature_kind, other.audio2exp_sha256, info, closed)
+
+
 def closure_weight(probability: np.ndarray, ramp: tuple[float, float] = CLOSURE_RAMP) -> np.ndarray:
     """``(T,)`` blend weights towards the closed mouth for closure probabilities ``(T,)``: 0 at ``ramp[0]``
     and below, 1 at ``ramp[1]`` and above, linear between (:data:`CLOSURE_RAMP`)."""

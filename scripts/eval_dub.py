@@ -110,8 +110,8 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     tts = args.out / "tts.wav"
     if not tts.exists():
-        audio, rate = synthesize(TTS_TEXT)
-        sf.write(tts, audio, rate)
+        speech = synthesize(TTS_TEXT)
+        sf.write(tts, speech.audio, speech.rate)
     audios = {**{k: DATA / v for k, v in AUDIOS.items()}, "text to speech (piper)": tts}
     rows = []
     for target in args.targets:

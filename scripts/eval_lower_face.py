@@ -73,7 +73,9 @@ def _retrieval(frames_by_index, seq, model, t: int, train: np.ndarray, boxes, we
     return np.clip(w * pasted + (1 - w) * real, 0, 255).round().astype(np.uint8)
 
 
-def evaluate(video: Path, out: Path, cache: Path, budget_min: float, step: int, max_frames: int) -> dict:
+def evaluate(
+    video: Path, out: Path, cache: Path, budget_min: float, step: int, max_frames: int, args
+) -> dict:
     import cv2
 
     from nvp.app.corpus import tracked_cached
@@ -89,10 +91,18 @@ def evaluate(video: Path, out: Path, cache: Path, budget_min: float, step: int, 
     split = int(round(seq.num_frames * 0.8))
     rdir = out / video.stem
     if not (rdir / "renderer.json").exists():
-        sys.path.insert(0, str(Path(__file__).parent))
         from eval_renderer import evaluate as train_and_eval
 
-        train_and_eval(video, rdir, "cpu", budget_min, cache)
+        train_and_eval(
+            video,
+            rdir,
+            "cpu",
+            budget_min,
+            cache,
+            steps=args.steps,
+            source_input=args.source_input,
+            detail_weight=args.detail_weight,
+        )
     expr_audio = _style_and_audio_expressions(video, seq, split, cache)
     test = np.arange(split, seq.num_frames)[::step][:max_frames]
     yaw = np.degrees(np.arctan2(seq.rotation[:, 0, 2], seq.rotation[:, 2, 2]))
@@ -189,14 +199,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--budget-minutes", type=float, default=20.0, help="training time when a renderer is missing"
     )
+    ap.add_argument(
+        "--steps", type=int, help="train this many steps instead of for a time budget (independent of load)"
+    )
     ap.add_argument("--step", type=int, default=5, help="evaluate every n-th held-out frame")
     ap.add_argument("--max-frames", type=int, default=60, help="at most this many frames per video")
+    sys.path.insert(0, str(Path(__file__).parent))
+    from eval_renderer import add_variant_arguments
+
+    add_variant_arguments(ap)
     args = ap.parse_args(argv)
     if not SHARED.is_dir():
         print(f"no evaluation data: {SHARED} does not exist")
         return 0
     results = [
-        evaluate(SHARED / v, args.out, args.cache, args.budget_minutes, args.step, args.max_frames)
+        evaluate(SHARED / v, args.out, args.cache, args.budget_minutes, args.step, args.max_frames, args)
         for v in args.videos
     ]
     (args.out / "lower_face.json").write_text(json.dumps(results, indent=2) + "\n")

@@ -16,6 +16,7 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -25,7 +26,14 @@ DEFAULT_VIDEOS = ["dfrf__cnn2_25fps.mp4", "mimictalk__German_20s.mp4", "styletal
 
 
 def evaluate(
-    video: Path, out: Path, preset: str, budget_min: float, cache_dir: Path, steps: int | None = None
+    video: Path,
+    out: Path,
+    preset: str,
+    budget_min: float,
+    cache_dir: Path,
+    steps: int | None = None,
+    source_input: bool | None = None,
+    detail_weight: float = 0.0,
 ) -> dict:
     from nvp.app.corpus import tracked_cached
     from nvp.errors import FormatError
@@ -38,6 +46,10 @@ def evaluate(
     from renderer.render import FrameRenderer, render_frames
     from renderer.train import RendererTrainConfig, train_renderer
 
+    chosen = get_preset(preset)
+    if source_input is not None:
+        chosen = replace(chosen, source_input=source_input)
+
     model = default_face_model()
     seq = tracked_cached(video, cache_dir, progress=False)
     split = int(round(seq.num_frames * 0.8))
@@ -47,12 +59,15 @@ def evaluate(
     try:
         cache = FrameCache.load(cp, source)
     except FormatError:  # missing, damaged or made from other settings
-        cache = build_cache(video, seq, model, get_preset(preset), np.arange(split))
+        cache = build_cache(video, seq, model, chosen, np.arange(split))
         cache.save(cp, source)
     cfg = RendererTrainConfig(
-        preset=preset, steps=steps or 10**6, budget_s=None if steps else budget_min * 60
+        preset=preset,
+        steps=steps or 10**6,
+        budget_s=None if steps else budget_min * 60,
+        detail_weight=detail_weight,
     )
-    train_renderer(cache, cfg, out)
+    train_renderer(cache, cfg, out, preset=chosen)
     manifest = json.loads((out / "renderer.json").read_text())
     test = np.arange(split, seq.num_frames)
     rows, t_render = [], 0.0
@@ -98,6 +113,22 @@ def evaluate(
     }
 
 
+def add_variant_arguments(ap: argparse.ArgumentParser) -> None:
+    """Options that train a variant of the preset (for comparing it with the shipped one)."""
+    ap.add_argument(
+        "--source-input",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="feed the face network the footage's moved pixels (Preset.source_input; default: the preset's)",
+    )
+    ap.add_argument(
+        "--detail-weight",
+        type=float,
+        default=0.0,
+        help="weight of the high-frequency loss (RendererTrainConfig)",
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     from nvp.app.report import write_results
 
@@ -108,13 +139,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--steps", type=int, help="train this many steps instead of for a time budget")
     ap.add_argument("--cache", type=Path, default=Path("out/a2e/cache"), help="tracking cache")
     ap.add_argument("--out", type=Path, default=Path("out/eval_renderer"))
+    add_variant_arguments(ap)
     args = ap.parse_args(argv)
     if not SHARED.is_dir():
         print(f"no evaluation data: {SHARED} does not exist")
         return 0
     rows = [
         evaluate(
-            SHARED / v, args.out / Path(v).stem, args.preset, args.budget_minutes, args.cache, args.steps
+            SHARED / v,
+            args.out / Path(v).stem,
+            args.preset,
+            args.budget_minutes,
+            args.cache,
+            args.steps,
+            args.source_input,
+            args.detail_weight,
         )
         for v in args.videos
     ]

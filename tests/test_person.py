@@ -237,3 +237,44 @@ def test_style_round_trip_keeps_the_closed_mouth_and_reads_version_1(tmp_path):
     old = PersonStyle.load(save_artifact(tmp_path / "v1", "person_map", 1, arrays, fields))
     assert old.closed_expression is None
     np.testing.assert_array_equal(old.rest_expression, s.rest_expression)
+
+
+def test_style_transfer_moves_the_mouth_statistics_towards_the_other_person(face_model):
+    from nvp.errors import NvpError
+    from nvp.metrics import closed_level
+    from nvp.person import apply_style, transferred_style
+
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(300, 32)).astype(np.float32)
+    closure = (rng.random(300) < 0.2).astype(np.float32)  # the closure head's say
+    m = rng.normal(0, 0.05, (K, 32)).astype(np.float32)
+
+    def person(gain, rest, closes):
+        bias = np.zeros(K, np.float32)
+        bias[0] = rest
+        shut = np.full(K, rest / 2, np.float32) if closes else None
+        return PersonStyle(PersonMap(gain * m, bias), bias.copy(), "mel", "0" * 64, {"video": "x"}, shut)
+
+    def stats(style):
+        gap = face_model.inner_lip_gap(
+            np.zeros(face_model.num_id, np.float32), apply_style(style, a, closure, None)
+        )
+        closed = gap <= closed_level(gap_own)
+        return np.percentile(gap, 95) - np.percentile(gap, 5), closed.mean(), gap
+
+    own, other = person(1.0, 0.0, False), person(3.0, 0.5, True)  # the other opens wider and closes firmly
+    gap_own = face_model.inner_lip_gap(
+        np.zeros(face_model.num_id, np.float32), apply_style(own, a, closure, None)
+    )
+    moved = transferred_style(own, other)
+    spread_own, closed_own, _ = stats(own)
+    spread_other, _, _ = stats(other)
+    spread_moved, closed_moved, _ = stats(moved)
+    assert spread_own < spread_moved and spread_moved == pytest.approx(spread_other, rel=0.02)
+    assert closed_moved > closed_own
+    np.testing.assert_allclose(moved.rest_expression, own.rest_expression)  # at rest: their own mouth
+    both = transferred_style(person(1.0, 0.3, True), other)  # closures close the own lips exactly
+    np.testing.assert_allclose(both.closed_expression, person(1.0, 0.3, True).closed_expression, atol=1e-6)
+    np.testing.assert_allclose(apply_style(moved, a, None, np.zeros(300))[0], own.rest_expression, atol=1e-6)
+    with pytest.raises(NvpError, match="different"):
+        transferred_style(own, PersonStyle(other.person_map, other.rest_expression, "mel", "1" * 64, {}))

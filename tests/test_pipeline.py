@@ -129,24 +129,74 @@ def test_fit_needs_audio(tmp_path):
     assert not (tmp_path / "p").exists() and not (tmp_path / "p.partial").exists()
 
 
-def test_text_to_video(bundle, tmp_path):
-    import subprocess
-    import sys
-    from pathlib import Path
+def test_say_speaks_text_offline_and_marks_how(bundle, tmp_path):
+    pytest.importorskip("piper", reason="the optional tts extra is not installed")
+    from nvp.provenance import verify
+
+    out, wav = tmp_path / "say.mp4", tmp_path / "s.wav"
+    proc = nvp("say", "Hi there.", "--person", bundle, "-o", out, "--wav", wav)
+    assert proc.returncode == 0, proc.stderr
+    speech = read_audio(wav, None)
+    assert abs(probe_video(out).num_frames - len(speech) / 22050 * 25) <= 1
+    assert verify(out).tags["nvp_speech"] == "text to speech (piper, voice joe_us)"
+    listed = nvp("say", "--list-voices")
+    assert listed.returncode == 0 and listed.stdout.startswith("joe_us\t")
+    assert_one_line_error(nvp("say", "Hi.", "--person", bundle, "-o", out, "--voice", "nobody"), "joe_us")
+    assert_one_line_error(nvp("say", "   ", "--person", bundle, "-o", out), "empty")
+    assert_one_line_error(nvp("say", "Hi.", "-o", out), "--person")
+
+
+def test_say_with_a_voice_file_and_the_espeak_fallback(tmp_path, monkeypatch):
+    from nvp import tts
+    from nvp.errors import NvpError
 
     pytest.importorskip("piper", reason="the optional tts extra is not installed")
-    script = Path(__file__).resolve().parents[1] / "scripts" / "tts_to_video.py"
-    out = tmp_path / "tts.mp4"
-    proc = subprocess.run(
-        [sys.executable, script, "Hi there.", "--person", bundle, "-o", out, "--wav", tmp_path / "s.wav"],
-        capture_output=True,
-        text=True,
-        timeout=300,
+    _, model, config = tts.voice_files(None)
+    mine = tmp_path / "my-voice.onnx"
+    mine.symlink_to(model)
+    (tmp_path / "my-voice.onnx.json").symlink_to(config)
+    speech = tts.synthesize("Yes.", voice=str(mine), length_scale=1.5)
+    assert (speech.engine, speech.voice, speech.rate) == ("piper", "my-voice", 22050)
+    assert 0.2 < speech.seconds < 3 and np.abs(speech.audio).max() > 0.05
+    with pytest.raises(NvpError, match="onnx.json"):
+        (tmp_path / "my-voice.onnx.json").unlink()
+        tts.synthesize("Yes.", voice=str(mine))
+    # without piper: espeak-ng when it is installed, else one clear message naming both
+    monkeypatch.setattr(tts, "have_piper", lambda: False)
+    if tts.espeak_program():
+        speech = tts.synthesize("Hello there.")
+        assert speech.engine == "espeak-ng" and speech.seconds > 0.3
+    monkeypatch.setattr(tts, "espeak_program", lambda: None)
+    with pytest.raises(NvpError, match="nvp\\[tts\\].*espeak-ng"):
+        tts.synthesize("Hello there.")
+    with pytest.raises(NvpError, match="piper is not installed"):
+        tts.synthesize("Hello there.", engine="piper")
+
+
+def test_dub_in_another_persons_style(bundle, tmp_path):
+    from nvp.person import PersonStyle
+    from nvp.provenance import verify
+
+    own = PersonStyle.load(bundle / "style.json")
+    wide = PersonStyle(
+        own.person_map.__class__(3 * own.person_map.matrix, own.person_map.bias + 0.5),
+        own.rest_expression + 0.5,
+        own.feature_kind,
+        own.audio2exp_sha256,
+        {"video": "other.mp4"},
+        None,
     )
+    other = tmp_path / "other_style"
+    wide.save(other)
+    wav = tmp_path / "speech.wav"
+    sf.write(wav, speechlike(0.8), 22050)
+    out = tmp_path / "styled.mp4"
+    proc = nvp("dub", wav, "--person", bundle, "-o", out, "--style", other.with_suffix(".json"))
     assert proc.returncode == 0, proc.stderr
-    speech = read_audio(tmp_path / "s.wav", None)
-    assert abs(probe_video(out).num_frames - len(speech) / 22050 * 25) <= 1
-    assert nvp("verify", out).returncode == 0
+    assert verify(out).tags["nvp_style"] == "other.mp4"
+    assert_one_line_error(
+        nvp("dub", wav, "--person", bundle, "-o", out, "--style", tmp_path / "no"), "not found"
+    )
 
 
 def test_eval_needs_audio_and_enough_frames(tmp_path, demo_clip):
@@ -239,3 +289,48 @@ def test_an_error_under_a_progress_bar_gets_a_line_of_its_own(capsys):
     err = capsys.readouterr().err
     assert "\nnvp dub: error: boom\n" in err  # the bar's line was ended first
     assert bar.disable or bar.n == 3
+
+
+def test_predict_exports_a_gltf_animation_that_reads_back_and_renders(bundle, tmp_path):
+    import pygltflib
+
+    from nvp.gltf import CM_TO_GLTF, read_glb
+    from renderer.gl import GLRasterizer
+
+    wav = tmp_path / "speech.wav"
+    sf.write(wav, speechlike(1.2), 22050)
+    glb, npz = tmp_path / "anim.glb", tmp_path / "p.npz"
+    proc = nvp("predict", wav, "--style", bundle, "--fps", 30, "--export", glb, "-o", npz)
+    assert proc.returncode == 0, proc.stderr
+    with np.load(npz) as z:
+        expected, expression = z["vertices"], z["expression"]
+    # a maintained glTF reader sees one mesh with 64 morph targets and a weights animation at 30 fps
+    g = pygltflib.GLTF2().load(str(glb))
+    assert g.asset.version == "2.0" and len(g.meshes[0].primitives[0].targets) == 64
+    channel = g.animations[0].channels[0]
+    assert channel.target.path == "weights" and g.animations[0].samplers[0].interpolation == "LINEAR"
+    times = g.accessors[g.animations[0].samplers[0].input]
+    assert times.count == len(expected) == 36 and times.max[0] == pytest.approx(35 / 30)
+    anim = read_glb(glb)
+    assert anim.fps == pytest.approx(30, rel=1e-4) and "first audio sample" in anim.info["timing"]
+    np.testing.assert_allclose(anim.weights, expression, atol=1e-6)
+    for j in (
+        0,
+        17,
+        35,
+    ):  # the loaded animation's vertices are predict's mesh, in metres, y up, z to the viewer
+        np.testing.assert_allclose(anim.vertices(j), expected[j] * CM_TO_GLTF, atol=1e-6)
+    # the front faces are counter-clockwise seen from +Z, as glTF wants
+    v, f = anim.base, anim.triangles
+    normal_z = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])[:, 2]
+    assert (normal_z > 0).mean() > 0.9
+    # rendered with nvp's rasterizer (back in the camera frame, 40 cm away), it covers the same pixels
+    with GLRasterizer(96, 96) as gl:
+        for j in (0, 35):
+            cam = [anim.vertices(j) / CM_TO_GLTF, expected[j]]
+            masks = [
+                gl.rasterize(c + [0, 0, 40], f, np.zeros((len(c), 2)), 150.0, [48, 48]).mask for c in cam
+            ]
+            assert masks[0].sum() > 1000 and bool((masks[0] == masks[1]).all())
+    assert_one_line_error(nvp("predict", wav, "--style", bundle, "--export", tmp_path / "a.gltf"), ".glb")
+    assert_one_line_error(nvp("predict", wav, "--style", bundle), "--export")

@@ -240,6 +240,29 @@ def test_learning_rate_falls_from_lr_to_its_final_fraction():
     assert all(a >= b for a, b in zip(lrs[:-1], lrs[1:], strict=True)) and type(lrs[0]) is float
 
 
+def test_high_frequency_loss_sees_lost_detail_only_inside_the_mask():
+    from kornia.filters import gaussian_blur2d
+
+    from renderer.train import high_frequency_l1, high_pass, renderer_loss
+
+    g = torch.Generator().manual_seed(0)
+    smooth = gaussian_blur2d(torch.rand(2, 3, 32, 32, generator=g), (9, 9), (3.0, 3.0))
+    detailed = smooth + 0.1 * torch.randn(2, 3, 32, 32, generator=g)
+    assert high_pass(torch.full((1, 3, 8, 8), 0.7)).abs().max() < 1e-6  # flat: no detail
+    mask = torch.zeros(2, 1, 32, 32)
+    mask[..., 8:24, 8:24] = 1
+    assert high_frequency_l1(detailed, detailed, mask) == 0
+    lost = high_frequency_l1(smooth, detailed, mask)
+    assert lost > 10 * high_frequency_l1(smooth + 0.01, smooth, mask)  # an offset is no lost detail
+    outside = detailed.clone()
+    outside[..., :4, :] = smooth[..., :4, :]  # detail lost only outside the (blurred) mask's reach
+    assert high_frequency_l1(outside, detailed, mask) == 0
+    base = RendererTrainConfig()
+    args = (smooth, smooth, detailed, mask)
+    with_detail = renderer_loss(*args, replace(base, detail_weight=2.0))
+    assert with_detail == pytest.approx(float(renderer_loss(*args, base) + 2.0 * lost), rel=1e-5)
+
+
 def test_mix_regions_widens_a_fraction_of_the_crops_to_a_union():
     from renderer.train import mix_regions
 

@@ -84,31 +84,58 @@ def _cmd_person_map(args: argparse.Namespace) -> int:
 def _cmd_predict(args: argparse.Namespace) -> int:
     import numpy as np
 
+    from nvp.app.dub import load_style
     from nvp.artifact import atomic_path, check_output_file
     from nvp.audio2exp import default_audio2exp
     from nvp.errors import NvpError
     from nvp.face_model import default_face_model
     from nvp.media import read_audio
-    from nvp.person import PersonStyle, predict_expressions
+    from nvp.person import predict_expressions
+    from nvp.tracked import TrackedSequence
 
-    path = check_output_file(args.output, inputs=(args.audio, args.style))
-    style = PersonStyle.load(Path(args.style))
+    if args.output is None and args.export is None:
+        raise NvpError("give -o (expressions .npz) and/or --export (animation .glb)")
+    outputs = [check_output_file(p, inputs=(args.audio, args.style)) for p in (args.output, args.export) if p]
+    if args.export is not None and args.export.suffix.lower() != ".glb":
+        raise NvpError(f"--export writes binary glTF: name the file .glb, not {args.export.name}")
+    style = load_style(args.style)
     net, manifest = default_audio2exp(style.feature_kind)
     if manifest["sha256"] != style.audio2exp_sha256:
         raise NvpError(f"{args.style} was made with another Audio2ExpressionNet; rebuild it (nvp person-map)")
+    model = default_face_model()
+    identity, whose = np.zeros(model.num_id, np.float32), "the face model's mean face"
+    track = args.mesh
+    if track is None and args.style.is_dir():
+        from nvp.bundle import PersonBundle
+
+        track = PersonBundle.load(args.style).path("tracked")
+    if track is not None:
+        identity, whose = TrackedSequence.load(Path(track)).identity, f"the face of {track}"
     audio = read_audio(args.audio, 16000)
     expr = predict_expressions(audio, 16000, args.fps, style, net)
-    out = {"expression": expr.astype(np.float32), "fps": np.float32(args.fps)}
-    if args.mesh:
-        from nvp.tracked import TrackedSequence
+    if args.output is not None:
+        out = {"expression": expr.astype(np.float32), "fps": np.float32(args.fps)}
+        if track is not None:
+            out["vertices"] = model.vertices(identity, expr).astype(np.float32)
+            out["triangles"] = model.triangles
+        with atomic_path(outputs[0]) as tmp:
+            np.savez_compressed(tmp, **out)
+    if args.export is not None:
+        from nvp.gltf import face_animation, write_glb
 
-        seq = TrackedSequence.load(Path(args.mesh))
-        model = default_face_model()
-        out["vertices"] = model.vertices(seq.identity, expr).astype(np.float32)
-        out["triangles"] = model.triangles
-    with atomic_path(path) as tmp:
-        np.savez_compressed(tmp, **out)
-    print(f"{len(expr)} frames of expressions at {args.fps} fps → {path}")
+        info = {
+            "nvp": "audio-driven face animation (Neural Voice Puppetry)",
+            "audio": Path(args.audio).name,
+            "fps": args.fps,
+            "timing": "keyframe j at j / fps seconds; second 0 = the first audio sample",
+            "face": whose,
+            "style": str(style.info.get("video", args.style)),
+        }
+        write_glb(
+            face_animation(model.vertices(identity), model.exp_basis, model.triangles, expr, args.fps, info),
+            outputs[-1],
+        )
+    print(f"{len(expr)} frames of expressions at {args.fps} fps ({whose}) → " + ", ".join(map(str, outputs)))
     return 0
 
 
@@ -201,10 +228,64 @@ def _cmd_fit(args: argparse.Namespace) -> int:
 def _cmd_dub(args: argparse.Namespace) -> int:
     from nvp.app.dub import dub
 
-    r = dub(args.audio, args.person, args.output, device=_device(args.device), progress=not args.quiet)
+    r = dub(
+        args.audio,
+        args.person,
+        args.output,
+        device=_device(args.device),
+        progress=not args.quiet,
+        style=args.style,
+    )
     print(
         f"{r.frames} frames ({r.frames / r.fps:.2f} s for {r.audio_seconds:.2f} s of audio) in "
         f"{r.seconds:.1f} s ({r.frames / r.seconds:.1f} frames/s) → {r.output}"
+    )
+    return 0
+
+
+def _cmd_say(args: argparse.Namespace) -> int:
+    import tempfile
+
+    import soundfile as sf
+
+    from nvp.app.dub import dub
+    from nvp.artifact import check_output_file
+    from nvp.tts import installed_voices, synthesize
+
+    if args.list_voices:
+        voices = installed_voices()
+        for name, (model, _) in sorted(voices.items()):
+            print(f"{name}\t{model}")
+        if not voices:
+            print("no piper voice installed (pip install 'nvp[tts]')")
+        return 0
+    if args.text is None or args.person is None or args.output is None:
+        from nvp.errors import NvpError
+
+        raise NvpError("give the text, --person and -o (or --list-voices)")
+    check_output_file(args.output)
+    if args.wav is not None:
+        check_output_file(args.wav)
+    speech = synthesize(args.text, length_scale=args.slower, voice=args.voice, engine=args.engine)
+    with tempfile.TemporaryDirectory() as tmp:
+        wav = Path(tmp) / "speech.wav"
+        sf.write(wav, speech.audio, speech.rate)
+        r = dub(
+            wav,
+            args.person,
+            args.output,
+            device=_device(args.device),
+            progress=not args.quiet,
+            style=args.style,
+            details={"speech": f"text to speech ({speech.engine}, voice {speech.voice})"},
+        )
+        if args.wav is not None:
+            import shutil
+
+            shutil.copyfile(wav, args.wav)
+    print(
+        f"{speech.seconds:.1f} s of speech ({speech.engine}, voice {speech.voice}), {r.frames} frames in "
+        f"{r.seconds:.1f} s → {r.output}" + (f"; speech → {args.wav}" if args.wav else "")
     )
     return 0
 
@@ -324,6 +405,14 @@ def _add_device_arg(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _add_style_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--style",
+        type=Path,
+        help="talk in another person's style: their bundle folder or person-map .json (default: their own)",
+    )
+
+
 def _device(name: str) -> str:
     """The torch device for ``--device`` (``auto`` picks cuda when torch sees a GPU)."""
     if name != "auto":
@@ -410,10 +499,21 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("predict", help="predict a person's expressions (and mesh) for new audio")
     p.add_argument("audio", type=Path, help="speech (wav, flac, mp3, m4a, or a video's audio track)")
-    p.add_argument("--style", type=Path, required=True, help="person map from nvp person-map")
+    p.add_argument(
+        "--style",
+        type=Path,
+        required=True,
+        help="person bundle folder (nvp fit) or person map (nvp person-map)",
+    )
     p.add_argument("--fps", type=float, default=25.0, help="output frame rate")
-    p.add_argument("--mesh", type=Path, metavar="TRACK_DIR", help="also export vertices with this identity")
-    p.add_argument("-o", "--output", type=Path, required=True, help="output .npz (expression, vertices)")
+    p.add_argument(
+        "--mesh",
+        type=Path,
+        metavar="TRACK_DIR",
+        help="face to animate (default: the bundle's, else the mean face)",
+    )
+    p.add_argument("-o", "--output", type=Path, help="output .npz (expression; vertices with a face)")
+    p.add_argument("--export", type=Path, help="output glTF 2.0 animation (.glb): morph targets + weights")
     p.set_defaults(func=_cmd_predict)
 
     p = sub.add_parser("train-renderer", help="train the neural renderer on a tracked video")
@@ -452,8 +552,29 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("audio", type=Path, help="speech: wav, flac, mp3, m4a (or a video's audio track)")
     p.add_argument("--person", type=Path, required=True, help="person bundle from nvp fit")
     p.add_argument("-o", "--output", type=Path, required=True, help="output mp4")
+    _add_style_arg(p)
     _add_device_arg(p)
     p.set_defaults(func=_cmd_dub)
+
+    p = sub.add_parser("say", help="make a fitted person say a text (offline text to speech, then dub)")
+    p.add_argument("text", nargs="?", help="what the person says")
+    p.add_argument("--person", type=Path, help="person bundle from nvp fit")
+    p.add_argument("-o", "--output", type=Path, help="output mp4")
+    p.add_argument(
+        "--voice", help="piper voice: an installed voice's name (see --list-voices) or a .onnx voice file"
+    )
+    p.add_argument(
+        "--engine",
+        choices=("auto", "piper", "espeak-ng"),
+        default="auto",
+        help="speech engine (auto: piper when installed, else espeak-ng)",
+    )
+    p.add_argument("--slower", type=float, default=1.0, help="speaking slowness (>1 slower, <1 faster)")
+    p.add_argument("--wav", type=Path, help="also keep the speech here")
+    p.add_argument("--list-voices", action="store_true", help="list the installed piper voices and exit")
+    _add_style_arg(p)
+    _add_device_arg(p)
+    p.set_defaults(func=_cmd_say)
 
     p = sub.add_parser("info", help="summarise a person bundle")
     p.add_argument("person", type=Path, help="person bundle folder")

@@ -49,8 +49,8 @@ def _demo_speech(text: str | None, seconds: float) -> tuple[np.ndarray, int, str
 
     if text:
         try:
-            audio, rate = synthesize(text)
-            return audio, rate, f"text to speech (piper): {text!r}"
+            speech = synthesize(text)
+            return speech.audio, speech.rate, f"text to speech ({speech.engine}): {text!r}"
         except NvpError as e:
             log.warning("%s; the demo speaks with a synthetic voice instead", e)
     rng = np.random.default_rng(1)

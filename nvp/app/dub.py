@@ -40,6 +40,19 @@ def dubbed_vertices(
     return (1 - w) * tracked_cam + w * spoken
 
 
+def load_style(path: str | Path):
+    """A person's talking style from their bundle folder (``nvp fit``) or a style file (``nvp person-map``,
+    its ``.json`` or ``.npz``)."""
+    from nvp.person import PersonStyle
+
+    path = Path(path)
+    if path.is_dir():
+        return PersonStyle.load(PersonBundle.load(path).path("style"))
+    if not path.exists():
+        raise NvpError(f"style {path} not found (give a person bundle folder or a person-map .json)")
+    return PersonStyle.load(path)
+
+
 @dataclass(frozen=True)
 class DubResult:
     """What ``dub`` wrote and measured."""
@@ -61,14 +74,18 @@ def dub(
     output: str | Path,
     device: str = "cpu",
     progress: bool = True,
+    style: str | Path | None = None,
+    details: dict[str, str] | None = None,
 ) -> DubResult:
     """Make the person of ``bundle_dir`` say ``audio_path``; writes an mp4 as long as the audio (±1 frame),
-    with the input audio at its own sample rate and channels."""
+    with the input audio at its own sample rate and channels. ``style``: another person's bundle or style
+    file whose talking style drives the mouth (:func:`nvp.person.transferred_style`); ``details``: more
+    provenance tags for the output (e.g. how its speech was made)."""
     from nvp.artifact import check_output_file
     from nvp.audio2exp import default_audio2exp
     from nvp.face_model import default_face_model
     from nvp.media import VideoWriter, audio_rate, frames_at, read_audio
-    from nvp.person import PersonStyle, predict_expressions
+    from nvp.person import PersonStyle, predict_expressions, transferred_style
     from nvp.provenance import synthetic_mark
     from nvp.schedule import target_frame_indices
     from nvp.vad import speech_activity
@@ -83,7 +100,8 @@ def dub(
     mono = original if original.ndim == 1 else original.mean(1)
     if len(mono) == 0 or not speech_activity(mono, rate):
         raise NvpError(f"{audio_path}: no speech found (silence, noise or music only, or too quiet)")
-    style = PersonStyle.load(bundle.path("style"))
+    own = PersonStyle.load(bundle.path("style"))
+    style = own if style is None else transferred_style(own, load_style(style))
     net, manifest = default_audio2exp(style.feature_kind)
     if manifest["sha256"] != style.audio2exp_sha256:
         raise NvpError(f"{bundle.root} was made with another Audio2ExpressionNet; run nvp fit again")
@@ -98,8 +116,9 @@ def dub(
     def spoken(j: int, k: int, tracked: np.ndarray) -> np.ndarray:
         return dubbed_vertices(model, seq, k, expression[j], weights, tracked)
 
+    extra = {**(details or {}), **({} if style is own else {"style": str(style.info.get("style_of"))})}
     tags = synthetic_mark(
-        "dub", bundle=bundle.manifest.get("id", bundle.root.name), audio=Path(audio_path).name
+        "dub", bundle=bundle.manifest.get("id", bundle.root.name), audio=Path(audio_path).name, **extra
     )
     out = Path(output)
     out.parent.mkdir(parents=True, exist_ok=True)
