@@ -601,6 +601,11 @@ class VideoWriter:
 
     ``metadata`` is stored as container tags (arbitrary keys are kept in MP4 via ``use_metadata_tags``)
     and can be read back with ``av.open(path).metadata``.
+
+    ``live=True`` (``nvp live``) writes a fragmented MP4 straight to ``path``, a fragment per second
+    (x264 ``zerolatency``: no frame is held back), so players can read the file while it grows; audio
+    then arrives with :meth:`add_audio` (``audio`` gives only its channels, e.g. an empty ``(0,)`` array).
+    :meth:`abort` then finishes the file instead of deleting it: what was streamed stays playable.
     """
 
     def __init__(
@@ -613,6 +618,7 @@ class VideoWriter:
         audio_rate: int = 16000,
         crf: int = 18,
         metadata: dict[str, str] | None = None,
+        live: bool = False,
     ) -> None:
         if width <= 0 or height <= 0:
             raise ValueError(f"width and height must be positive, got {width}x{height}")
@@ -628,18 +634,26 @@ class VideoWriter:
         self._audio = _prepare_audio(audio) if audio is not None else None
         self._audio_rate = int(audio_rate)
         self._audio_pos = 0  # samples sent to the encoder so far
+        self._audio_base = 0  # stream index of self._audio's first held sample (add_audio drops sent ones)
         self._closed = False
         self._reformatter = VideoReformatter()
+        self.live = live
 
         target = Path(self.path)
         suffix = target.suffix or ".mp4"
         _remove_stale_temporaries(target, suffix)
-        self._tmp = str(
-            target.with_name(f".{target.stem}.nvp-{os.getpid()}-{secrets.token_hex(4)}.tmp{suffix}")
+        self._tmp = (
+            self.path
+            if live
+            else str(target.with_name(f".{target.stem}.nvp-{os.getpid()}-{secrets.token_hex(4)}.tmp{suffix}"))
         )
+        flags = "+frag_keyframe+empty_moov+default_base_moof" if live else "+faststart"
         options = (
-            {"movflags": "+faststart+use_metadata_tags"} if suffix.lower() in (".mp4", ".mov", ".m4v") else {}
+            {"movflags": flags + "+use_metadata_tags"} if suffix.lower() in (".mp4", ".mov", ".m4v") else {}
         )
+        x264 = {"crf": str(int(crf)), "preset": "veryfast"}
+        if live:
+            x264.update({"tune": "zerolatency", "g": str(max(1, round(float(self.fps))))})
         try:
             self._container = av.open(self._tmp, "w", options=options)
         except _AV_ERRORS as exc:
@@ -648,9 +662,7 @@ class VideoWriter:
         try:
             for key, value in (metadata or {}).items():
                 self._container.metadata[str(key)] = str(value)
-            vs = self._container.add_stream(
-                "libx264", rate=self.fps, options={"crf": str(int(crf)), "preset": "veryfast"}
-            )
+            vs = self._container.add_stream("libx264", rate=self.fps, options=x264)
             vs.width = self.width + self._pad_w
             vs.height = self.height + self._pad_h
             vs.pix_fmt = "yuv420p"
@@ -732,10 +744,22 @@ class VideoWriter:
         except _AV_ERRORS as exc:
             self._raise_write_error(exc, f"encoding frame {self.num_frames} failed")
 
+    def add_audio(self, samples: np.ndarray) -> None:
+        """Append audio (``(n,)`` or ``(n, channels)``, the channels given at creation) to the track; it is
+        encoded as the video reaches it."""
+        if self._audio is None:
+            raise ValueError("this writer has no audio track")
+        more = _prepare_audio(samples)
+        if more.shape[0] != self._audio.shape[0]:
+            raise ValueError(f"expected {self._audio.shape[0]} audio channels, found {more.shape[0]}")
+        self._audio = np.concatenate([self._audio[:, self._audio_pos - self._audio_base :], more], 1)
+        self._audio_base = self._audio_pos
+
     def _write_audio(self, end: int, final: bool) -> None:
         """Encode audio samples up to sample index ``end`` (zero-padding past the input's end)."""
         assert self._audio is not None and self._astream is not None
-        channels, available = self._audio.shape
+        channels, held = self._audio.shape
+        available = self._audio_base + held  # stream index just past the last sample given
         layout = AUDIO_LAYOUTS[channels]
         while self._audio_pos < end:
             n = min(_AAC_FRAME_SIZE, end - self._audio_pos)
@@ -744,7 +768,8 @@ class VideoWriter:
             chunk = np.zeros((channels, n), dtype=np.float32)
             stop = min(available, self._audio_pos + n)
             if stop > self._audio_pos:
-                chunk[:, : stop - self._audio_pos] = self._audio[:, self._audio_pos : stop]
+                b = self._audio_base
+                chunk[:, : stop - self._audio_pos] = self._audio[:, self._audio_pos - b : stop - b]
             af = av.AudioFrame.from_ndarray(chunk, format="fltp", layout=layout)
             af.sample_rate = self._audio_rate
             af.pts = self._audio_pos
@@ -764,27 +789,32 @@ class VideoWriter:
             self.abort()
             raise MediaError(f"cannot write video '{self.path}': no frames were written")
         try:
-            self._container.mux(self._vstream.encode(None))
-            if self._astream is not None and self._audio is not None:
-                total = round(Fraction(self.num_frames * self._audio_rate) / self.fps)
-                given = self._audio.shape[1]
-                if abs(given - total) > self._audio_rate / self.fps:
-                    logger.warning(
-                        "audio for '%s' is %.3f s but the video is %.3f s; %s to match",
-                        self.path,
-                        given / self._audio_rate,
-                        total / self._audio_rate,
-                        "trimmed" if given > total else "padded with silence",
-                    )
-                self._write_audio(total, final=True)
-                self._container.mux(self._astream.encode(None))
-            self._container.close()
+            self._finish()
             self._closed = True
-            os.replace(self._tmp, self.path)
+            if not self.live:
+                os.replace(self._tmp, self.path)
         except (*_AV_ERRORS, ValueError, OSError) as exc:
             self.abort()
             self._raise_write_error(exc, "finishing the file failed")
         logger.debug("wrote %s: %d frames at %s fps", self.path, self.num_frames, self.fps)
+
+    def _finish(self) -> None:
+        """Flush the encoders (audio trimmed or padded to the video's length) and close the container."""
+        self._container.mux(self._vstream.encode(None))
+        if self._astream is not None and self._audio is not None:
+            total = round(Fraction(self.num_frames * self._audio_rate) / self.fps)
+            given = self._audio_base + self._audio.shape[1]
+            if abs(given - total) > self._audio_rate / self.fps:
+                logger.warning(
+                    "audio for '%s' is %.3f s but the video is %.3f s; %s to match",
+                    self.path,
+                    given / self._audio_rate,
+                    total / self._audio_rate,
+                    "trimmed" if given > total else "padded with silence",
+                )
+            self._write_audio(total, final=True)
+            self._container.mux(self._astream.encode(None))
+        self._container.close()
 
     def _raise_write_error(self, exc: BaseException, what: str) -> None:
         if is_disk_full(exc):
@@ -793,7 +823,16 @@ class VideoWriter:
         raise MediaError(f"cannot write video '{self.path}': {what} ({exc})") from exc
 
     def abort(self) -> None:
-        """Discard everything written so far: close and delete the temporary file; ``path`` is untouched."""
+        """Discard everything written so far: close and delete the temporary file; ``path`` is untouched.
+        A live writer finishes its file instead (what was streamed stays playable)."""
+        if self.live and self.num_frames > 0:
+            if not self._closed:
+                self._closed = True
+                try:
+                    self._finish()
+                except Exception:  # keep whatever fragments made it to disk
+                    logger.debug("error while finishing live file %s", self.path, exc_info=True)
+            return
         if not self._closed:
             self._closed = True
             try:

@@ -334,3 +334,60 @@ def test_predict_exports_a_gltf_animation_that_reads_back_and_renders(bundle, tm
             assert masks[0].sum() > 1000 and bool((masks[0] == masks[1]).all())
     assert_one_line_error(nvp("predict", wav, "--style", bundle, "--export", tmp_path / "a.gltf"), ".glb")
     assert_one_line_error(nvp("predict", wav, "--style", bundle), "--export")
+
+
+def test_expression_stream_is_causal_and_follows_whole_file_prediction(bundle):
+    from nvp.audio2exp import default_audio2exp
+    from nvp.face_model import default_face_model
+    from nvp.person import PersonStyle, predict_expressions
+    from nvp.stream import ExpressionStream
+    from nvp.windows import num_video_frames
+
+    style = PersonStyle.load(bundle / "style.json")
+    net, _ = default_audio2exp(style.feature_kind)
+    audio = speechlike(6.0, 16000, seed=3)
+    whole = predict_expressions(audio, 16000, 25.0, style, net)
+    stream = ExpressionStream(style, net, 25.0, lookahead_s=0.4)
+    parts = []
+    for i in range(0, len(audio), 3200):
+        parts.append(stream.push(audio[i : i + 3200]))
+        # a frame comes out only once its audio and the look-ahead are in
+        assert stream.done == num_video_frames(max(0.0, stream.received / 16000 - 0.4), 25.0)
+    parts.append(stream.finish())
+    live = np.concatenate(parts)
+    assert live.shape == whole.shape == (num_video_frames(6.0, 25.0), whole.shape[1])
+    model = default_face_model()
+    ident = np.zeros(model.num_id, np.float32)
+    g_live, g_whole = model.inner_lip_gap(ident, live), model.inner_lip_gap(ident, whole)
+    assert np.corrcoef(g_live, g_whole)[0, 1] > 0.8
+
+
+def test_live_dubs_a_stream_in_real_time_and_to_a_pipe(bundle, tmp_path):
+    import subprocess
+    import sys
+
+    from nvp.app.live import BLOCK_S, live
+    from nvp.provenance import verify
+
+    wav = tmp_path / "speech.wav"
+    sf.write(wav, speechlike(5.0), 22050)
+    out = tmp_path / "live.mp4"
+    r = live(wav, bundle, out, realtime=True)
+    assert r.frames == 125 and probe_video(out).num_frames == 125  # 5 s at 25 fps
+    assert 0 <= len(read_audio(out, 16000)) / 16000 - 5.0 < 0.1  # + the last AAC frame, untrimmed
+    assert r.seconds >= 5.0 - BLOCK_S  # played at the pace of the audio
+    # no frame is shown before its audio and the look-ahead have arrived (the last ones: at the end)
+    assert r.latency_s[:-15].min() >= r.lookahead_s - BLOCK_S
+    assert verify(out).tags["nvp_kind"] == "live"
+    # raw PCM in on stdin, raw RGB frames out on stdout
+    pcm = (np.clip(speechlike(2.0, 16000), -1, 1) * 32767).astype("<i2").tobytes()
+    proc = subprocess.run(
+        [sys.executable, "-m", "nvp.app.cli", "-q", "live", "-", "--person", bundle, "--raw"],
+        input=pcm,
+        capture_output=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr.decode()
+    assert len(proc.stdout) == 50 * 256 * 256 * 3 and b"frames dropped" in proc.stderr
+    assert_one_line_error(nvp("live", tmp_path / "none.wav", "--person", bundle, "-o", out), "no such")
+    assert_one_line_error(nvp("live", wav, "--person", bundle), "--raw")

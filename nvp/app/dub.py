@@ -11,6 +11,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -19,6 +20,10 @@ from nvp.errors import NvpError
 from nvp.face_model import FaceModel
 from nvp.geometry import posed
 from nvp.tracked import TrackedSequence
+
+if TYPE_CHECKING:
+    from nvp.audio2exp import Audio2ExpressionNet
+    from nvp.person import PersonStyle
 
 
 def dubbed_vertices(
@@ -54,6 +59,39 @@ def load_style(path: str | Path):
 
 
 @dataclass(frozen=True)
+class Person:
+    """What dubbing a fitted person needs besides the audio (see :func:`load_person`)."""
+
+    bundle: PersonBundle
+    style: PersonStyle
+    """The style that drives the mouth (the person's own, or transferred)."""
+    net: Audio2ExpressionNet
+    """The generic network the style belongs to."""
+    tracked: TrackedSequence
+    model: FaceModel
+    mark: dict[str, str]
+    """Provenance tags of the style (which person's style, when another one's)."""
+
+
+def load_person(bundle: PersonBundle, style: str | Path | None = None) -> Person:
+    """The person of a loaded ``bundle``, talking in their own style or in ``style``'s (another person's
+    bundle folder or style file, :func:`nvp.person.transferred_style`); checks that the style and the
+    shipped network belong together."""
+    from nvp.audio2exp import default_audio2exp
+    from nvp.face_model import default_face_model
+    from nvp.person import PersonStyle, transferred_style
+
+    own = PersonStyle.load(bundle.path("style"))
+    chosen = own if style is None else transferred_style(own, load_style(style))
+    net, manifest = default_audio2exp(chosen.feature_kind)
+    if manifest["sha256"] != chosen.audio2exp_sha256:
+        raise NvpError(f"{bundle.root} was made with another Audio2ExpressionNet; run nvp fit again")
+    mark = {} if style is None else {"style": str(chosen.info.get("style_of"))}
+    seq = TrackedSequence.load(bundle.path("tracked"))
+    return Person(bundle, chosen, net, seq, default_face_model(), mark)
+
+
+@dataclass(frozen=True)
 class DubResult:
     """What ``dub`` wrote and measured."""
 
@@ -82,10 +120,8 @@ def dub(
     file whose talking style drives the mouth (:func:`nvp.person.transferred_style`); ``details``: more
     provenance tags for the output (e.g. how its speech was made)."""
     from nvp.artifact import check_output_file
-    from nvp.audio2exp import default_audio2exp
-    from nvp.face_model import default_face_model
     from nvp.media import VideoWriter, audio_rate, frames_at, read_audio
-    from nvp.person import PersonStyle, predict_expressions, transferred_style
+    from nvp.person import predict_expressions
     from nvp.provenance import synthetic_mark
     from nvp.schedule import target_frame_indices
     from nvp.vad import speech_activity
@@ -100,13 +136,8 @@ def dub(
     mono = original if original.ndim == 1 else original.mean(1)
     if len(mono) == 0 or not speech_activity(mono, rate):
         raise NvpError(f"{audio_path}: no speech found (silence, noise or music only, or too quiet)")
-    own = PersonStyle.load(bundle.path("style"))
-    style = own if style is None else transferred_style(own, load_style(style))
-    net, manifest = default_audio2exp(style.feature_kind)
-    if manifest["sha256"] != style.audio2exp_sha256:
-        raise NvpError(f"{bundle.root} was made with another Audio2ExpressionNet; run nvp fit again")
-    seq = TrackedSequence.load(bundle.path("tracked"))
-    model = default_face_model()
+    person = load_person(bundle, style)
+    style, net, seq, model = person.style, person.net, person.tracked, person.model
     duration = len(mono) / rate
     n_out = num_video_frames(duration, seq.fps)
     expression = predict_expressions(mono, rate, seq.fps, style, net, num_frames=n_out)
@@ -116,7 +147,7 @@ def dub(
     def spoken(j: int, k: int, tracked: np.ndarray) -> np.ndarray:
         return dubbed_vertices(model, seq, k, expression[j], weights, tracked)
 
-    extra = {**(details or {}), **({} if style is own else {"style": str(style.info.get("style_of"))})}
+    extra = {**(details or {}), **person.mark}
     tags = synthetic_mark(
         "dub", bundle=bundle.manifest.get("id", bundle.root.name), audio=Path(audio_path).name, **extra
     )
