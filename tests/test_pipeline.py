@@ -391,3 +391,32 @@ def test_live_dubs_a_stream_in_real_time_and_to_a_pipe(bundle, tmp_path):
     assert len(proc.stdout) == 50 * 256 * 256 * 3 and b"frames dropped" in proc.stderr
     assert_one_line_error(nvp("live", tmp_path / "none.wav", "--person", bundle, "-o", out), "no such")
     assert_one_line_error(nvp("live", wav, "--person", bundle), "--raw")
+
+
+def test_batch_dub_of_ten_files_goes_on_past_a_failing_one(bundle, tmp_path):
+    names = []
+    for i in range(10):
+        wav = tmp_path / f"line{i:02d}.wav"
+        noise = (0.3 * np.random.default_rng(i).standard_normal(16000)).astype(np.float32)
+        sf.write(wav, noise if i == 4 else speechlike(1.0, seed=i), 22050 if i != 4 else 16000)
+        names.append(wav.name)
+    (tmp_path / "lines.txt").write_text("# the episode's lines\n" + "\n".join(names[3:]) + "\n")
+    out = tmp_path / "dubbed"
+    proc = nvp(
+        "dub",
+        *[tmp_path / n for n in names[:3]],
+        "--list",
+        tmp_path / "lines.txt",
+        "--person",
+        bundle,
+        "-o",
+        out,
+    )
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr
+    assert proc.stderr.count("error") == 1 and "line04.wav" in proc.stderr and "no speech" in proc.stderr
+    made = sorted(p.name for p in out.glob("*.mp4"))
+    assert made == [f"line{i:02d}.mp4" for i in range(10) if i != 4]
+    assert "9 of 10 dubbed" in proc.stdout
+    assert_one_line_error(
+        nvp("dub", *[tmp_path / n for n in names[:2]], "--person", bundle, "-o", tmp_path / "x.mp4"), "folder"
+    )

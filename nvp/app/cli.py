@@ -227,20 +227,57 @@ def _cmd_fit(args: argparse.Namespace) -> int:
 
 def _cmd_dub(args: argparse.Namespace) -> int:
     from nvp.app.dub import dub
+    from nvp.errors import NvpError
 
-    r = dub(
-        args.audio,
-        args.person,
-        args.output,
-        device=_device(args.device),
-        progress=not args.quiet,
-        style=args.style,
-    )
-    print(
-        f"{r.frames} frames ({r.frames / r.fps:.2f} s for {r.audio_seconds:.2f} s of audio) in "
-        f"{r.seconds:.1f} s ({r.frames / r.seconds:.1f} frames/s) → {r.output}"
-    )
-    return 0
+    audios = [Path(a) for a in args.audio]
+    if args.list:
+        try:
+            lines = Path(args.list).read_text().splitlines()
+        except (OSError, UnicodeDecodeError) as e:
+            raise NvpError(f"cannot read the list {args.list}: {e}") from e
+        base = Path(args.list).parent
+        audios += [base / x.strip() for x in lines if x.strip() and not x.lstrip().startswith("#")]
+    if not audios:
+        raise NvpError("give the audio to dub (files, or --list FILE with one per line)")
+    several = len(audios) > 1
+    if several:
+        if Path(args.output).suffix.lower() == ".mp4" or Path(args.output).is_file():
+            raise NvpError(
+                f"several audio files are dubbed into a folder: -o {Path(args.output).with_suffix('')}/"
+            )
+        stems = [a.stem for a in audios]
+        twice = sorted({x for x in stems if stems.count(x) > 1})
+        if twice:
+            raise NvpError(f"two audio files would both be written as {twice[0]}.mp4; rename one")
+    failed = 0
+    for i, audio in enumerate(audios):
+        out = Path(args.output) / f"{audio.stem}.mp4" if several else Path(args.output)
+        try:
+            r = dub(
+                audio,
+                args.person,
+                out,
+                device=_device(args.device),
+                progress=not args.quiet,
+                style=args.style,
+            )
+        except NvpError as e:
+            if not several:
+                raise  # main() prints it as the one error line
+            print(f"nvp dub: {audio}: error: {e}", file=sys.stderr)  # the other files still run
+            failed += 1
+            continue
+        print(
+            (f"[{i + 1}/{len(audios)}] " if several else "")
+            + f"{r.frames} frames ({r.frames / r.fps:.2f} s for {r.audio_seconds:.2f} s of audio) in "
+            f"{r.seconds:.1f} s ({r.frames / r.seconds:.1f} frames/s) → {r.output}"
+        )
+    if several:
+        print(
+            f"{len(audios) - failed} of {len(audios)} dubbed → {args.output}"
+            + (f"; {failed} failed" if failed else "")
+        )
+    return 2 if failed else 0
 
 
 def _cmd_say(args: argparse.Namespace) -> int:
@@ -594,9 +631,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_fit)
 
     p = sub.add_parser("dub", help="make a fitted person say new audio")
-    p.add_argument("audio", type=Path, help="speech: wav, flac, mp3, m4a (or a video's audio track)")
+    p.add_argument(
+        "audio",
+        type=Path,
+        nargs="*",
+        help="speech: wav, flac, mp3, m4a (or a video's audio track); several ok",
+    )
+    p.add_argument("--list", type=Path, help="a text file naming more audio files, one per line")
     p.add_argument("--person", type=Path, required=True, help="person bundle from nvp fit")
-    p.add_argument("-o", "--output", type=Path, required=True, help="output mp4")
+    p.add_argument(
+        "-o", "--output", type=Path, required=True, help="output mp4 (a folder for several: <audio name>.mp4)"
+    )
     _add_style_arg(p)
     _add_device_arg(p)
     p.set_defaults(func=_cmd_dub)
