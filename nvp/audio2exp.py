@@ -181,12 +181,27 @@ class VertexMetric:
         Temporal term: RMS of the vertex-space error of the forward (x1-x0), backward (x2-x1) and central
         ((x2-x0)/2) differences.
         """
-        rms = self.sq(pred - target).mean().clamp_min(1e-12).sqrt()
+        return self.loss_from_sums(self.loss_sums(pred, target), temporal_weight)
+
+    def loss_sums(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        """``(4,)``: sum and count of the squared vertex errors, then of the squared difference errors (the
+        parts of :meth:`loss` that add up over shares of a batch)."""
+        err = self.sq(pred - target)
         if pred.shape[1] < 3:
-            return rms
+            return torch.stack([err.sum(), err.new_tensor(err.numel()), err.new_zeros(()), err.new_zeros(())])
         e = pred - target
-        diffs = torch.stack([e[:, 1] - e[:, 0], e[:, 2] - e[:, 1], (e[:, 2] - e[:, 0]) / 2], 1)
-        return rms + temporal_weight * self.sq(diffs).mean().clamp_min(1e-12).sqrt()
+        diffs = self.sq(torch.stack([e[:, 1] - e[:, 0], e[:, 2] - e[:, 1], (e[:, 2] - e[:, 0]) / 2], 1))
+        return torch.stack(
+            [err.sum(), err.new_tensor(err.numel()), diffs.sum(), diffs.new_tensor(diffs.numel())]
+        )
+
+    @staticmethod
+    def loss_from_sums(sums: torch.Tensor, temporal_weight: float = 20.0) -> torch.Tensor:
+        """:meth:`loss` from the (possibly summed over processes) :meth:`loss_sums`."""
+        rms = (sums[0] / sums[1]).clamp_min(1e-12).sqrt()
+        if sums[3] == 0:
+            return rms
+        return rms + temporal_weight * (sums[2] / sums[3]).clamp_min(1e-12).sqrt()
 
 
 @dataclass(frozen=True)

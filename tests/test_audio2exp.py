@@ -192,3 +192,32 @@ def test_closure_head_learns_when_the_lips_close(face_model, tmp_path):
     # the closed frames are told apart from the open ones (area under the ROC curve)
     auc = (p[labels][:, None] > p[~labels][None]).mean()
     assert auc > 0.8, auc
+
+
+def test_two_processes_under_torchrun_follow_the_one_process_run(tmp_path):
+    import json
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).parent / "ddp_train_toy.py"
+    torchrun = Path(sys.executable).with_name("torchrun")
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    runs = {
+        "one": [sys.executable, script, tmp_path / "one"],
+        "two": [torchrun, "--standalone", "--nproc_per_node", "2", script, tmp_path / "two"],
+    }
+    for name, cmd in runs.items():
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env)
+        assert proc.returncode == 0, f"{name}: {proc.stderr[-2000:]}"
+    logs = {k: json.loads((tmp_path / k / "log.json").read_text()) for k in runs}
+    assert [r["step"] for r in logs["one"]] == [r["step"] for r in logs["two"]] == list(range(10, 61, 10))
+    one = np.array([r["train_loss"] for r in logs["one"]])
+    two = np.array([r["train_loss"] for r in logs["two"]])
+    # same batches, each process half of each; the RMS loss is made from sums over both, so the loss and its
+    # gradient are the one-process ones: the curves agree up to float rounding
+    np.testing.assert_allclose(two, one, rtol=1e-4)
+    assert one[-1] < one[0]
+    val = [np.array([r["mouth_error_iod"] for r in logs[k]]) for k in runs]
+    np.testing.assert_allclose(val[1], val[0], rtol=1e-4)

@@ -32,14 +32,20 @@ def _cmd_track(args: argparse.Namespace) -> int:
 
 def _cmd_train_audio2exp(args: argparse.Namespace) -> int:
     from nvp.app.corpus import corpus_split
+    from nvp.app.distributed import process_group
     from nvp.app.train_audio2exp import Audio2ExpTrainConfig, train
     from nvp.face_model import default_face_model
 
+    group = process_group()  # one process, or one of torchrun's
     cache = Path(args.cache) if args.cache else Path(args.output) / "cache"
     snrs = tuple(args.noise_snr or ())
+    if not group.main:
+        group.barrier()  # the main process tracks the corpus into the cache first
     train_set, val_set, split = corpus_split(
-        Path(args.corpus), args.val, args.exclude, cache, args.features, not args.quiet, snrs
+        Path(args.corpus), args.val, args.exclude, cache, args.features, not args.quiet and group.main, snrs
     )
+    if group.main:
+        group.barrier()
     cfg = Audio2ExpTrainConfig(
         kind=args.features,
         steps=args.steps,
@@ -56,8 +62,10 @@ def _cmd_train_audio2exp(args: argparse.Namespace) -> int:
         cfg,
         Path(args.output),
         progress=not args.quiet,
-        provenance={"split": split, **frames, "corpus": str(args.corpus)},
+        provenance={"split": split, **frames, "corpus": str(args.corpus), "processes": group.world},
     )
+    if not group.main:
+        return 0
     print(
         f"best validation mouth error {result['best_mouth_error_iod']:.4f} IOD → "
         f"{Path(args.output) / 'best.json'}"

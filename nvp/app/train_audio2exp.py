@@ -218,6 +218,22 @@ def usable_sets(
     return train_set, ok
 
 
+class _Trainable(torch.nn.Module):
+    """The generic network and the training videos' person maps, as one module (for
+    DistributedDataParallel): feature windows of frame triplets and video ids in, expressions and closure
+    logits out."""
+
+    def __init__(self, net: Audio2ExpressionNet, maps: torch.Tensor, bias: torch.Tensor) -> None:
+        super().__init__()
+        self.net = net
+        self.maps, self.bias = torch.nn.Parameter(maps), torch.nn.Parameter(bias)
+
+    def forward(self, windows: torch.Tensor, vids: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        ae, closure_logits = _predict_triplets(self.net, windows)  # (B, 3, A), (B, 3)
+        pred = torch.einsum("bka,bta->btk", self.maps[vids], ae) + self.bias[vids][:, None]
+        return pred, closure_logits
+
+
 def train(
     train_set: list[VideoSample],
     val_set: list[VideoSample],
@@ -232,8 +248,15 @@ def train(
     Writes ``checkpoint.pt`` every ``val_every`` steps (network, maps, optimiser, step, RNG state) and
     ``best.{npz,json}`` whenever the mean validation mouth error improves; its manifest holds the config,
     the step, the validation metrics and ``provenance`` (e.g. which videos). Returns the training log.
+
+    Under ``torchrun`` (:mod:`nvp.app.distributed`) every process takes its share of each batch and
+    DistributedDataParallel averages the gradients; the main process validates and writes the files.
     """
+    from nvp.app.distributed import process_group
+
+    group = process_group()
     train_set, val_set = usable_sets(train_set, val_set, cfg.train_fraction)
+    share = group.share(cfg.batch)
     out_dir.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
     net_cfg = replace(
@@ -244,9 +267,11 @@ def train(
     centre = net_cfg.window // 2
     net.per_frame.set_input_stats(torch.from_numpy(np.concatenate([s.windows[:, centre] for s in train_set])))
     k, a = model.num_exp, net_cfg.audio_exp_dim
-    maps = torch.nn.Parameter(torch.zeros(len(train_set), k, a))
-    bias = torch.nn.Parameter(torch.from_numpy(np.stack([s.expression[s.valid].mean(0) for s in train_set])))
+    maps = torch.zeros(len(train_set), k, a)
     torch.nn.init.normal_(maps, std=0.1)
+    bias = torch.from_numpy(np.stack([s.expression[s.valid].mean(0) for s in train_set]))
+    trainable = _Trainable(net, maps, bias)
+    maps, bias = trainable.maps, trainable.bias
     opt = torch.optim.Adam(
         [
             {"params": net.parameters(), "lr": cfg.lr, "weight_decay": cfg.weight_decay},
@@ -281,16 +306,21 @@ def train(
         step, best = int(state["step"]), float(state["best"])
         log_rows = json.loads((out_dir / "log.json").read_text()) if (out_dir / "log.json").exists() else []
         log.info("resuming from step %d", step)
+    forward = trainable
+    if group.world > 1:
+        from torch.nn.parallel import DistributedDataParallel
+
+        forward = DistributedDataParallel(trainable)  # starts every process from the main one's weights
     f = net_cfg.filter_window
-    bar = tqdm(total=cfg.steps, initial=step, desc="train audio2exp", disable=not progress)
+    bar = tqdm(total=cfg.steps, initial=step, desc="train audio2exp", disable=not (progress and group.main))
     t0 = time.perf_counter()
     running = []
     while step < cfg.steps:
         net.train()
         # batches depend only on (seed, step), so a resumed run continues exactly like an uninterrupted one
         rng = np.random.default_rng([cfg.seed, step])
-        pick = items[rng.integers(0, len(items), cfg.batch)]
-        variant = rng.integers(0, 1 << 30, cfg.batch)
+        pick = items[rng.integers(0, len(items), cfg.batch)][share]  # the batch is drawn alike everywhere
+        variant = rng.integers(0, 1 << 30, cfg.batch)[share]
         wins, tgts, vids, shut = [], [], [], []
         for (v, t), k in zip(pick, variant, strict=True):
             source = windows[v][k % len(windows[v])]  # clean or one of the noisy copies
@@ -302,23 +332,29 @@ def train(
         wins = torch.stack(wins)
         if cfg.feature_noise > 0:
             noise_rng = torch.Generator().manual_seed(cfg.seed * 1_000_003 + step)
-            wins = wins + cfg.feature_noise * net.per_frame.input_std * torch.randn(
-                wins.shape, generator=noise_rng
-            )
-        ae, closure_logits = _predict_triplets(net, wins)  # (B, 3, A), (B, 3)
-        vids_t = torch.as_tensor(vids)
-        pred = torch.einsum("bka,bta->btk", maps[vids_t], ae) + bias[vids_t][:, None]
-        loss = metric.loss(pred, torch.stack(tgts), cfg.temporal_weight)
-        if closure_logits is not None:
-            loss = loss + cfg.closure_weight * torch.nn.functional.binary_cross_entropy_with_logits(
+            noise = torch.randn((cfg.batch, *wins.shape[1:]), generator=noise_rng)[share]
+            wins = wins + cfg.feature_noise * net.per_frame.input_std * noise
+        pred, closure_logits = forward(wins, torch.as_tensor(vids))
+        # the vertex loss is an RMS over the whole batch: made from sums over all processes, and scaled by
+        # their number because DistributedDataParallel averages the processes' gradients
+        sums = group.total(metric.loss_sums(pred, torch.stack(tgts)))
+        vertex_loss = metric.loss_from_sums(sums, cfg.temporal_weight)
+        closure_loss = torch.zeros(())
+        if closure_logits is not None:  # a mean over the items: DistributedDataParallel's average is right
+            closure_loss = torch.nn.functional.binary_cross_entropy_with_logits(
                 closure_logits, torch.stack(shut), pos_weight=pos_weight
             )
+        loss = group.world * vertex_loss + cfg.closure_weight * closure_loss
         opt.zero_grad()
         loss.backward()
         opt.step()
         step += 1
-        running.append(loss.item())
+        running.append(vertex_loss.item() + cfg.closure_weight * group.mean(closure_loss.item()))
         bar.update(1)
+        if (step % cfg.val_every == 0 or step == cfg.steps) and not group.main:
+            running = []
+            group.barrier()  # the main process validates and saves
+            continue
         if step % cfg.val_every == 0 or step == cfg.steps:
             rows = [
                 evaluate_person(s, model, audio_expressions(net, s.windows), cfg.train_fraction, cfg.ridge)
@@ -363,5 +399,6 @@ def train(
             )
             os.replace(tmp, ckpt)
             (out_dir / "log.json").write_text(json.dumps(log_rows, indent=2) + "\n")
+            group.barrier()
     bar.close()
     return {"log": log_rows, "best_mouth_error_iod": best}
