@@ -19,6 +19,7 @@ import torch
 from tqdm import tqdm
 
 from nvp.errors import FormatError
+from renderer.adversarial import critic_loss, generator_loss
 from renderer.data import FrameCache, Rasterizer, blank_face, moved_source
 from renderer.networks import count_parameters, make_renderer, save_renderer
 from renderer.preset import Preset, get_preset
@@ -47,6 +48,10 @@ class RendererTrainConfig:
     """Weight of the masked L1 term on the interior render."""
     detail_weight: float = 0.0
     """Weight of the high-frequency term (:func:`high_frequency_l1`) on the final image inside the mesh."""
+    adversarial_weight: float = 0.0
+    """Weight of the patch-adversarial term (:mod:`renderer.adversarial`; 0: none)."""
+    adversarial_start: float = 0.25
+    """Part of the training after which the adversarial term is added (the critic trains from the start)."""
     region_mix: float = 0.5
     """Fraction of training crops whose blanked region is widened to the union with another training
     frame's region, as when a dub's new geometry covers less than the footage's own face: the
@@ -217,11 +222,21 @@ def train_renderer(
                 "step": step,
                 "elapsed": elapsed,
                 "log": json.dumps(log_rows),
+                **({"critic": critic.state_dict(), "critic_opt": critic_opt.state_dict()} if critic else {}),
             },
             tmp,
         )
         os.replace(tmp, ckpt)
 
+    critic = critic_opt = None
+    if cfg.adversarial_weight > 0:
+        from renderer.adversarial import PatchCritic
+
+        critic = PatchCritic().to(device)
+        critic_opt = torch.optim.Adam(critic.parameters(), lr=2e-4, betas=(0.5, 0.999))
+        if ckpt.exists() and "critic" in state:
+            critic.load_state_dict(state["critic"])
+            critic_opt.load_state_dict(state["critic_opt"])
     perceptual = None
     if cfg.vgg_weights:
         from renderer.perceptual import VGGPerceptual
@@ -245,9 +260,15 @@ def train_renderer(
         loss = renderer_loss(interior, final, target, geo.mask, cfg)
         if perceptual is not None:
             loss = loss + cfg.vgg_weight * perceptual(final, target)
+        if critic is not None and progress >= cfg.adversarial_start:
+            loss = loss + cfg.adversarial_weight * generator_loss(critic, final, geo.mask)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
+        if critic is not None:
+            critic_opt.zero_grad(set_to_none=True)  # also drops what the renderer's loss left on it
+            critic_loss(critic, target, final, geo.mask).backward()
+            critic_opt.step()
         step += 1
         now = time.perf_counter()
         elapsed += now - t_last

@@ -102,6 +102,8 @@ def evaluate(
             steps=args.steps,
             source_input=args.source_input,
             detail_weight=args.detail_weight,
+            source_gap_s=args.source_gap,
+            adversarial_weight=args.adversarial_weight,
         )
     expr_audio = _style_and_audio_expressions(video, seq, split, cache)
     test = np.arange(split, seq.num_frames)[::step][:max_frames]

@@ -34,6 +34,8 @@ def evaluate(
     steps: int | None = None,
     source_input: bool | None = None,
     detail_weight: float = 0.0,
+    source_gap_s: tuple[float, float] | None = None,
+    adversarial_weight: float = 0.0,
 ) -> dict:
     from nvp.app.corpus import tracked_cached
     from nvp.errors import FormatError
@@ -66,6 +68,8 @@ def evaluate(
         steps=steps or 10**6,
         budget_s=None if steps else budget_min * 60,
         detail_weight=detail_weight,
+        adversarial_weight=adversarial_weight,
+        **({"source_gap_s": tuple(source_gap_s)} if source_gap_s else {}),
     )
     train_renderer(cache, cfg, out, preset=chosen)
     manifest = json.loads((out / "renderer.json").read_text())
@@ -127,6 +131,16 @@ def add_variant_arguments(ap: argparse.ArgumentParser) -> None:
         default=0.0,
         help="weight of the high-frequency loss (RendererTrainConfig)",
     )
+    ap.add_argument(
+        "--source-gap",
+        type=float,
+        nargs=2,
+        metavar=("LO", "HI"),
+        help="seconds between a training crop and its moved source frame (RendererTrainConfig.source_gap_s)",
+    )
+    ap.add_argument(
+        "--adversarial-weight", type=float, default=0.0, help="weight of the patch-adversarial loss"
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -154,6 +168,8 @@ def main(argv: list[str] | None = None) -> int:
             args.steps,
             args.source_input,
             args.detail_weight,
+            args.source_gap,
+            args.adversarial_weight,
         )
         for v in args.videos
     ]

@@ -201,6 +201,42 @@ def test_training_resumes_exactly_and_renders(footage, face_model, tmp_path):
         np.testing.assert_array_equal(img[far:], frame[far:])
 
 
+def test_patch_critic_learns_texture_from_blur_and_adversarial_training_resumes(
+    footage, face_model, tmp_path
+):
+    from kornia.filters import gaussian_blur2d
+
+    from renderer.adversarial import PatchCritic, critic_loss, generator_loss
+
+    torch.manual_seed(0)
+    g = torch.Generator().manual_seed(1)
+    critic = PatchCritic(base=8)
+    opt = torch.optim.Adam(critic.parameters(), lr=2e-3, betas=(0.5, 0.999))
+    mask = torch.ones(4, 1, 32, 32)
+    for _ in range(150):  # real: textured; rendered: the same, blurred
+        real = (0.5 + 0.2 * torch.randn(4, 3, 32, 32, generator=g)).clamp(0, 1)
+        fake = gaussian_blur2d(real, (7, 7), (2.0, 2.0))
+        opt.zero_grad()
+        critic_loss(critic, real, fake, mask).backward()
+        opt.step()
+    assert critic(real).mean() > critic(fake).mean() + 0.5
+    assert generator_loss(critic, fake, mask) > generator_loss(critic, real, mask)
+    assert generator_loss(critic, fake, torch.zeros_like(mask)) == 0  # off the face: no say
+    # renderer training with the term resumes exactly (the critic is checkpointed, never saved with it)
+    path, seq = footage
+    cache = build_cache(path, seq, face_model, TINY, np.arange(10), progress=False)
+    cfg = RendererTrainConfig(
+        steps=4, checkpoint_every=2, lr_final=1.0, adversarial_weight=0.1, adversarial_start=0
+    )
+    train_renderer(cache, cfg, tmp_path / "a", progress=False, preset=TINY)
+    train_renderer(cache, replace(cfg, steps=2), tmp_path / "b", progress=False, preset=TINY)
+    train_renderer(cache, cfg, tmp_path / "b", progress=False, preset=TINY)
+    a, b = load_renderer(tmp_path / "a")[0], load_renderer(tmp_path / "b")[0]
+    for (k, va), vb in zip(a.state_dict().items(), b.state_dict().values(), strict=True):
+        torch.testing.assert_close(va, vb, msg=k)
+    assert not any("critic" in k for k in a.state_dict())
+
+
 def test_load_renderer_rejects_other_files(tmp_path):
     from nvp.errors import FormatError
 
