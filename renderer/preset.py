@@ -31,6 +31,9 @@ class Preset:
     chin), so it is kept narrow: held-out crop PSNR on dfrf__cnn2 after 10 minutes of training 29.2 dB
     with 0.06, 31.9 with 0.03, 34.3 with 0.015. A dub blanks the union of the footage's and the new
     geometry's regions, so the footage's own chin is covered wherever the tracked mesh fits it."""
+    minutes: float | None = None
+    """Default training time on a CPU (``nvp fit`` without ``--steps`` or ``--budget-minutes`` stops after
+    this long or after ``steps``, whichever comes first); None: ``steps`` only (a GPU preset)."""
     source_input: bool = False
     """Give the face network the footage's own pixels moved onto the rendered surface (see
     :func:`renderer.data.moved_source`): in a dub the footage frame already shows this person's lower face
@@ -40,8 +43,10 @@ class Preset:
 
 
 PRESETS = {
-    "cpu": Preset("cpu", crop=192, base=16, dilated=False, texture_size=256, steps=8000, batch=2),
-    "quality": Preset("quality", crop=256, base=32, dilated=False, texture_size=256, steps=12000, batch=4),
+    "cpu": Preset("cpu", crop=192, base=16, dilated=False, texture_size=256, steps=8000, batch=2, minutes=20),
+    "quality": Preset(
+        "quality", crop=256, base=32, dilated=False, texture_size=256, steps=12000, batch=4, minutes=45
+    ),
     "paper": Preset("paper", crop=256, base=32, dilated=True, texture_size=256, steps=50000, batch=1),
 }
 

@@ -243,7 +243,16 @@ def train_renderer(
 
         perceptual = VGGPerceptual(cfg.vgg_weights).to(device)
     n = len(cache.frames)
-    bar = tqdm(total=steps, initial=step, desc=f"train renderer ({preset.name})", disable=not progress)
+    # with a time budget the bar counts seconds, so it shows the time left; else it counts steps
+    timed = cfg.budget_s is not None
+    bar = tqdm(
+        total=round(cfg.budget_s) if timed else steps,
+        initial=round(elapsed) if timed else step,
+        desc=f"train renderer ({preset.name})",
+        unit="s" if timed else "it",
+        bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} s, {remaining} left{postfix}" if timed else None,
+        disable=not progress,
+    )
     running: list[float] = []
     t_last = time.perf_counter()
     while step < steps and (cfg.budget_s is None or elapsed < cfg.budget_s):
@@ -274,9 +283,9 @@ def train_renderer(
         elapsed += now - t_last
         t_last = now
         running.append(loss.item())
-        bar.update(1)
+        bar.update(min(elapsed, bar.total) - bar.n if timed else 1)
         if step % 50 == 0:
-            bar.set_postfix(loss=f"{np.mean(running[-50:]):.4f}")
+            bar.set_postfix(step=step, loss=f"{np.mean(running[-50:]):.4f}")
         if step % cfg.preview_every == 0:
             _preview(out_dir / f"preview_{step:06d}.png", target, interior, final)
         if step % cfg.checkpoint_every == 0 or step == steps:

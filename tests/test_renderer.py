@@ -392,3 +392,15 @@ def test_the_renderer_learns_loss_falls_and_a_held_out_frame_improves(footage, f
         return np.abs(out.astype(float) - real).mean()
 
     assert error(tmp_path / "trained") < 0.7 * error(tmp_path / "untrained")
+
+
+def test_a_timed_renderer_training_shows_seconds_and_time_left(footage, face_model, tmp_path, capsys):
+    from renderer.train import RendererTrainConfig, train_renderer
+
+    tiny = Preset("tiny", crop=32, base=4, dilated=False, texture_size=32, steps=10**6, batch=1)
+    path, seq = footage
+    cache = build_cache(path, seq, face_model, tiny, np.arange(4), progress=False)
+    info = train_renderer(cache, RendererTrainConfig(budget_s=2.0), tmp_path / "r", preset=tiny)
+    assert 2.0 <= info["train_seconds"] < 10 and info["steps"] > 1
+    err = capsys.readouterr().err
+    assert "/2 s" in err and "left" in err

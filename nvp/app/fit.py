@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import shutil
+import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -90,6 +91,12 @@ def fit(
         log.warning("%s is already fitted from %s with these settings; reusing it", out, video.name)
         return done
     builder = BundleBuilder(out, config, sha)
+    if progress:
+        total, parts = expected_minutes(cfg, info.num_frames)
+        print(
+            f"nvp fit: expect about {total:.0f} minutes ({parts}); an interrupted fit resumes",
+            file=sys.stderr,
+        )
     if builder.restarted:
         log.warning("%s held an interrupted fit of another video; starting again", builder.work)
 
@@ -168,6 +175,32 @@ def fit(
     )
 
 
+TRACK_S_PER_FRAME = 0.03
+"""Rough tracking time per frame on a 2-core CPU (for the estimate :func:`fit` prints at the start)."""
+
+
+def renderer_minutes(cfg: FitConfig) -> float | None:
+    """The renderer's training time limit: ``--budget-minutes``, else (on a CPU, without ``--steps``) the
+    preset's default time, so that a fit without flags ends on its own; None: steps only."""
+    from renderer.preset import get_preset
+
+    if cfg.budget_minutes is not None:
+        return cfg.budget_minutes
+    if cfg.steps is None and not cfg.device.startswith("cuda"):
+        return get_preset(cfg.preset).minutes
+    return None
+
+
+def expected_minutes(cfg: FitConfig, frames: int) -> tuple[float, str]:
+    """Rough wall time of a fit of ``frames`` frames and what it is made of (printed at the start)."""
+    track = frames * TRACK_S_PER_FRAME / 60
+    train = renderer_minutes(cfg)
+    if train is None:
+        steps = cfg.steps or "the preset's"
+        return track, f"tracking about {track:.0f} min, then renderer training for {steps} steps"
+    return track + train + 1, f"tracking about {track:.0f} min, renderer training {train:.0f} min"
+
+
 def _check_speech(video: Path) -> None:
     """Refuse a target whose soundtrack holds no speech (a style solved from silence is meaningless)."""
     from nvp.media import read_audio
@@ -196,7 +229,8 @@ def _train_renderer(builder: BundleBuilder, cfg: FitConfig, progress: bool) -> N
         model = default_face_model()
         cache = build_cache(builder.path("target"), seq, model, preset, np.flatnonzero(seq.valid), progress)
         cache.save(frames_path, source)
-    budget = None if cfg.budget_minutes is None else cfg.budget_minutes * 60
+    minutes = renderer_minutes(cfg)
+    budget = None if minutes is None else minutes * 60
     tcfg = RendererTrainConfig(
         preset=cfg.preset, steps=cfg.steps, budget_s=budget, vgg_weights=cfg.vgg_weights
     )
