@@ -380,6 +380,13 @@ def _cmd_live(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_serve(args: argparse.Namespace) -> int:
+    from nvp.app.serve import serve
+
+    serve(Path(args.data), args.host, args.port, args.max_upload_mb)
+    return 0
+
+
 def _cmd_info(args: argparse.Namespace) -> int:
     from nvp.bundle import PersonBundle
 
@@ -694,6 +701,15 @@ def build_parser() -> argparse.ArgumentParser:
     _add_style_arg(p)
     _add_device_arg(p)
     p.set_defaults(func=_cmd_live)
+
+    p = sub.add_parser("serve", help="a local web app and JSON API: fit people and dub them in a browser")
+    p.add_argument("--host", default="127.0.0.1", help="address to listen on (default: this machine only)")
+    p.add_argument("--port", type=int, default=7860, help="port")
+    p.add_argument(
+        "--data", type=Path, default=Path("nvp-data"), help="folder for people, uploads, dubs, jobs"
+    )
+    p.add_argument("--max-upload-mb", type=float, default=1024, help="largest upload accepted")
+    p.set_defaults(func=_cmd_serve)
 
     p = sub.add_parser("info", help="summarise a person bundle")
     p.add_argument("person", type=Path, help="person bundle folder")
