@@ -72,6 +72,10 @@ class RendererTrainConfig:
     """Random seed (initial weights, batches)."""
 
 
+FIRST_PREVIEW = 100
+"""Step of the first preview image (then every ``preview_every``), so a short fit shows one early."""
+
+
 def l1_masked(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """Mean absolute error over the pixels where ``mask`` ``(B, 1, H, W)`` is 1."""
     return ((pred - target).abs() * mask).sum() / (mask.sum() * pred.shape[1]).clamp_min(1.0)
@@ -286,7 +290,7 @@ def train_renderer(
         bar.update(min(elapsed, bar.total) - bar.n if timed else 1)
         if step % 50 == 0:
             bar.set_postfix(step=step, loss=f"{np.mean(running[-50:]):.4f}")
-        if step % cfg.preview_every == 0:
+        if step % cfg.preview_every == 0 or step == FIRST_PREVIEW:
             _preview(out_dir / f"preview_{step:06d}.png", target, interior, final)
         if step % cfg.checkpoint_every == 0 or step == steps:
             log_rows.append({"step": step, "loss": float(np.mean(running)), "seconds": round(elapsed, 1)})

@@ -191,6 +191,7 @@ class App:
 
     def job_view(self, job: Job) -> dict:
         d = job.public()
+        d["person_name"] = self.names().get(job.person, {}).get("name", "")
         if job.kind in ("dub", "say") and job.state == "done":
             from nvp.provenance import verify
 
