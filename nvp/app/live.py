@@ -208,8 +208,7 @@ def live(
                         f"{latency[-1]:.2f} s, {dropped} dropped"
                     )
 
-        reader = _Reader(blocks, pace)
-        reader.start_time = time.perf_counter()
+        reader = _Reader(blocks, pace)  # its clock starts now: the first block "arrives" BLOCK_S later
         reader.start()
         while True:
             item = reader.queue.get()
