@@ -106,24 +106,32 @@ def _cmd_predict(args: argparse.Namespace) -> int:
     outputs = [check_output_file(p, inputs=(args.audio, args.style)) for p in (args.output, args.export) if p]
     if args.export is not None and args.export.suffix.lower() != ".glb":
         raise NvpError(f"--export writes binary glTF: name the file .glb, not {args.export.name}")
-    style = load_style(args.style)
-    net, manifest = default_audio2exp(style.feature_kind)
-    if manifest["sha256"] != style.audio2exp_sha256:
-        raise NvpError(f"{args.style} was made with another Audio2ExpressionNet; rebuild it (nvp person-map)")
     model = default_face_model()
     identity, whose = np.zeros(model.num_id, np.float32), "the face model's mean face"
     track = args.mesh
-    if track is None and args.style.is_dir():
+    if args.style.is_dir():  # a person bundle: its style, checked against the network, and its face
+        from nvp.app.dub import load_person
         from nvp.bundle import PersonBundle
 
-        track = PersonBundle.load(args.style).path("tracked")
+        person = load_person(PersonBundle.load(args.style))
+        style, net = person.style, person.net
+        if track is None:
+            identity, whose = person.tracked.identity, f"the face of {args.style}"
+    else:
+        style = load_style(args.style)
+        net, manifest = default_audio2exp(style.feature_kind)
+        if manifest["sha256"] != style.audio2exp_sha256:
+            raise NvpError(
+                f"{args.style} was made with another Audio2ExpressionNet; rebuild it (nvp person-map)"
+            )
     if track is not None:
         identity, whose = TrackedSequence.load(Path(track)).identity, f"the face of {track}"
+    face_given = track is not None or args.style.is_dir()
     audio = read_audio(args.audio, 16000)
     expr = predict_expressions(audio, 16000, args.fps, style, net)
     if args.output is not None:
         out = {"expression": expr.astype(np.float32), "fps": np.float32(args.fps)}
-        if track is not None:
+        if face_given:
             out["vertices"] = model.vertices(identity, expr).astype(np.float32)
             out["triangles"] = model.triangles
         with atomic_path(outputs[0]) as tmp:
@@ -348,7 +356,7 @@ def _cmd_live(args: argparse.Namespace) -> int:
     if raw is not None and not args.quiet:
         from nvp.bundle import PersonBundle
 
-        t = PersonBundle.load(args.person).manifest["target"]
+        t = PersonBundle.load(args.person, verify=False).manifest["target"]  # live() checks it in full
         size, fps = f"{t['width']}x{t['height']}", f"{t['fps']:.3f}"
         print(
             f"nvp live: raw RGB24 {size} at {fps} fps on stdout, e.g. | ffplay -f rawvideo "

@@ -68,6 +68,7 @@ class App:
         self.store = JobStore(self.data / "jobs.sqlite")
         self._names_path = self.data / "people.json"
         self._lock = threading.Lock()
+        self._marks: dict[str, str] = {}
         self.worker = Worker(self.store, self.data)
         self.requeued = self.worker.recover()
 
@@ -189,21 +190,26 @@ class App:
             raise ApiError(HTTPStatus.NOT_FOUND, f"no job {jid}")
         return job
 
-    def job_view(self, job: Job) -> dict:
+    def job_view(self, job: Job, names: dict | None = None) -> dict:
         d = job.public()
-        d["person_name"] = self.names().get(job.person, {}).get("name", "")
+        d["person_name"] = (self.names() if names is None else names).get(job.person, {}).get("name", "")
         if job.kind in ("dub", "say") and job.state == "done":
-            from nvp.provenance import verify
-
             d["result"] = f"/api/jobs/{job.id}/result.mp4"
-            try:
-                tags = verify(job.output).tags
-                d["mark"] = tags.get("comment", "")
-            except NvpError:
-                d["mark"] = ""
+            d["mark"] = self.mark(job)
         if job.kind == "fit" and self.preview(job) is not None:
             d["preview"] = f"/api/jobs/{job.id}/preview.png"
         return d
+
+    def mark(self, job: Job) -> str:
+        """The synthetic-media mark of a finished dub (read once: the page asks every second or so)."""
+        if job.id not in self._marks:
+            from nvp.provenance import verify
+
+            try:
+                self._marks[job.id] = verify(job.output).tags.get("comment", "")
+            except NvpError:
+                self._marks[job.id] = ""
+        return self._marks[job.id]
 
     def preview(self, job: Job) -> Path | None:
         """The newest renderer preview of a fit (in its partial folder while it runs)."""
@@ -437,7 +443,8 @@ class Handler(BaseHTTPRequestHandler):
         self._json(self.app.job_view(job), HTTPStatus.CREATED)
 
     def r_jobs(self, q) -> None:
-        self._json([self.app.job_view(j) for j in self.app.store.all()])
+        names = self.app.names()
+        self._json([self.app.job_view(j, names) for j in self.app.store.all()])
 
     def r_job(self, q, jid) -> None:
         self._json(self.app.job_view(self.app.job(jid)))
