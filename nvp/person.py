@@ -6,8 +6,9 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -23,12 +24,63 @@ from nvp.audio2exp import (
 from nvp.face_model import FaceModel
 from nvp.tracked import TrackedSequence
 
+if TYPE_CHECKING:
+    from nvp.audio_features import AudioFeatures
+    from nvp.opening import OpeningModel
+
 WINDOW_BLOCK = 2048
 """Video frames whose feature windows :func:`predict_expressions` builds at a time (25 MB for phonemes)."""
 
-FORMAT_VERSION = 2
-"""2: the person's closed mouth (``closed``) for the network's closure head; version 1 files load without
-it."""
+FORMAT_VERSION = 3
+"""2: the person's closed mouth (``closed``) for the network's closure head; 3: the opening calibration
+(:class:`OpeningStyle`). Older files load without them."""
+
+OPENING_WEIGHT = 0.75
+"""Share of the generic opening model (:mod:`nvp.opening`) in the mouth opening, against the person map's
+0.25 (see :class:`OpeningStyle`). Chosen on the validation people of ``scripts/data_split.json``
+(``scripts/eval_lipsync.py --set validation --opening-weight W``)."""
+
+
+@dataclass(frozen=True)
+class OpeningStyle:
+    """How the generic opening model's prediction becomes this person's mouth opening.
+
+    The opening is measured linearly: ``o(e) = e @ gap_weights + gap_offset`` (cm) is the distance of the
+    person's inner-lip midpoints along their average opening direction for expression coefficients ``e``
+    (the inner-lip gap while the lips are apart). For the person map's expressions ``e`` and the opening
+    model's standardised openings ``z`` the target is ``o* = map_weight o(e) + opening_weight z + offset``
+    (see :func:`opening_style`), and ``e`` moves along ``direction`` (how this person's expression changes
+    as their mouth opens, with ``direction @ gap_weights = 1``) until ``o(e) = o*``.
+
+    Attributes:
+        gap_weights: ``(K_exp,)`` cm per expression coefficient; gap_offset: cm.
+        direction: ``(K_exp,)`` expression change per cm of opening.
+        map_weight, opening_weight, offset: the blend.
+        model_sha256: the opening model it was calibrated for.
+    """
+
+    gap_weights: np.ndarray
+    gap_offset: float
+    direction: np.ndarray
+    map_weight: float
+    opening_weight: float
+    offset: float
+    model_sha256: str
+
+    def opening_of(self, expression: np.ndarray) -> np.ndarray:
+        """``(T,)`` linear opening ``o(e)`` in cm of expressions ``(T, K_exp)``."""
+        return expression @ self.gap_weights + self.gap_offset
+
+    def apply(self, expression: np.ndarray, opening: np.ndarray) -> np.ndarray:
+        """Expressions ``(T, K_exp)`` with their openings moved to the blend with ``opening`` ``(T,)``."""
+        o = self.opening_of(expression)
+        target = self.map_weight * o + self.opening_weight * np.asarray(opening) + self.offset
+        return (expression + (target - o)[:, None] * self.direction).astype(np.float32)
+
+    def shifted(self, shift: np.ndarray) -> OpeningStyle:
+        """The same opening motion for expressions moved by ``shift`` ``(K_exp,)`` (style transfer)."""
+        moved = float(shift @ self.gap_weights) * (1 - self.map_weight)
+        return replace(self, offset=self.offset + moved)
 
 
 @dataclass(frozen=True)
@@ -41,12 +93,15 @@ class VideoSample:
         tracked: the video's ``TrackedSequence`` (``T`` frames; expressions are the regression target).
         noisy: more ``(T, W, D)`` windows of the same frames, from the audio with noise mixed in (training
             augmentation; may be empty).
+        phonetic: ``(T, W, 144)`` windows of ``"phonetic"`` features of the same frames for the opening
+            model (:mod:`nvp.opening`), or None.
     """
 
     name: str
     windows: np.ndarray
     tracked: TrackedSequence
     noisy: tuple[np.ndarray, ...] = ()
+    phonetic: np.ndarray | None = None
 
     @property
     def expression(self) -> np.ndarray:
@@ -72,6 +127,8 @@ class PersonStyle:
         feature_kind: the speech features the map was solved with.
         audio2exp_sha256: hash of the generic network's weights the map belongs to.
         info: provenance (video, frames).
+        opening: how the generic opening model's predictions enter (:class:`OpeningStyle`); None: the
+            person map alone decides the opening.
     """
 
     person_map: PersonMap
@@ -80,6 +137,7 @@ class PersonStyle:
     audio2exp_sha256: str
     info: dict
     closed_expression: np.ndarray | None = None
+    opening: OpeningStyle | None = None
 
     def save(self, path: Path) -> Path:
         """Write ``path`` (.npz) and its ``.json`` manifest (:mod:`nvp.artifact`); returns the manifest."""
@@ -95,15 +153,31 @@ class PersonStyle:
             "audio2exp_sha256": self.audio2exp_sha256,
             "info": self.info,
         }
+        if self.opening is not None:
+            op = self.opening
+            arrays |= {"opening_gap_weights": op.gap_weights, "opening_direction": op.direction}
+            keys = ("gap_offset", "map_weight", "opening_weight", "offset", "model_sha256")
+            fields["opening"] = {k: getattr(op, k) for k in keys}
         return save_artifact(path, "person_map", FORMAT_VERSION, arrays, fields)
 
     @classmethod
     def load(cls, path: Path) -> PersonStyle:
-        art = load_artifact(path, "person_map", (1, FORMAT_VERSION))
+        art = load_artifact(path, "person_map", tuple(range(1, FORMAT_VERSION + 1)))
         a, m = art.arrays, art.manifest
         pm = PersonMap(matrix=a["matrix"], bias=a["bias"])
+        opening = None
+        if "opening" in m:
+            opening = OpeningStyle(
+                gap_weights=a["opening_gap_weights"], direction=a["opening_direction"], **m["opening"]
+            )
         return cls(
-            pm, a["rest"], m["feature_kind"], m["audio2exp_sha256"], m.get("info", {}), a.get("closed")
+            pm,
+            a["rest"],
+            m["feature_kind"],
+            m["audio2exp_sha256"],
+            m.get("info", {}),
+            a.get("closed"),
+            opening,
         )
 
 
@@ -187,6 +261,60 @@ def closed_mouth(expression: np.ndarray, gap: np.ndarray, voiced: np.ndarray | N
     return expression[shut].mean(0).astype(np.float32)
 
 
+def _spread(x: np.ndarray) -> float:
+    return float(np.percentile(x, 95) - np.percentile(x, 5))
+
+
+def opening_style(
+    model: FaceModel,
+    identity: np.ndarray,
+    expression: np.ndarray,
+    predicted: np.ndarray,
+    opening: np.ndarray,
+    model_sha256: str,
+    weight: float = OPENING_WEIGHT,
+    max_gain: float = RANGE_GAIN_MAX,
+) -> OpeningStyle | None:
+    """The person's :class:`OpeningStyle` from their frames: tracked ``expression`` ``(T, K_exp)``, the
+    person map's ``predicted`` expressions ``(T, K_exp)`` and the opening model's ``opening`` ``(T,)`` for
+    the same frames.
+
+    The opening model's output is put on the person's scale (its 5th-95th percentile spread and its mean
+    made those of their tracked opening), blended with the map's opening (``weight`` for the model), and
+    the blend is widened around its mean until its spread matches the tracked one (gain 1 … ``max_gain``,
+    as :func:`range_calibrated`). None when the footage shows no opening motion to calibrate on.
+    """
+    lips = model.vertices(identity)[[13, 14]].astype(np.float64)  # (2, 3) neutral inner-lip midpoints
+    basis = model.exp_basis[:, [13, 14]].astype(np.float64)  # (K_exp, 2, 3)
+    e = np.asarray(expression, np.float64)
+    axis = (lips[0] - lips[1]) + e.mean(0) @ (basis[:, 0] - basis[:, 1])
+    if len(e) < 3 or np.linalg.norm(axis) < 1e-9:
+        return None
+    axis /= np.linalg.norm(axis)
+    gw, g0 = (basis[:, 0] - basis[:, 1]) @ axis, float((lips[0] - lips[1]) @ axis)
+    real = e @ gw + g0
+    centred = real - real.mean()
+    if _spread(real) < 1e-6 or _spread(opening) < 1e-9:
+        return None
+    direction = (e - e.mean(0)).T @ centred / (centred @ centred)
+    if abs(direction @ gw) < 1e-9:
+        return None
+    scale = _spread(real) / _spread(opening)
+    head_offset = real.mean() - scale * float(np.mean(opening))
+    mapped = np.asarray(predicted, np.float64) @ gw + g0
+    blend = (1 - weight) * mapped + weight * (scale * opening + head_offset)
+    gain = float(np.clip(_spread(real) / max(_spread(blend), 1e-9), 1.0, max_gain))
+    return OpeningStyle(
+        gap_weights=gw.astype(np.float32),
+        gap_offset=g0,
+        direction=(direction / (direction @ gw)).astype(np.float32),
+        map_weight=gain * (1 - weight),
+        opening_weight=gain * weight * scale,
+        offset=gain * weight * head_offset + (1 - gain) * float(blend.mean()),
+        model_sha256=model_sha256,
+    )
+
+
 def style_from_sample(
     net: Audio2ExpressionNet,
     manifest: dict,
@@ -195,6 +323,8 @@ def style_from_sample(
     ridge: float = 10.0,
     voiced: np.ndarray | None = None,
     max_gain: float = RANGE_GAIN_MAX,
+    opening: OpeningModel | None = None,
+    opening_weight: float = OPENING_WEIGHT,
 ) -> PersonStyle:
     """A person's style from their tracked video.
 
@@ -205,7 +335,9 @@ def style_from_sample(
       validation people of ``scripts/data_split.json`` (``scripts/eval_lipsync.py``): pause frames at rest
       0.85 → 0.06 (real 0.09), opening correlation 0.40 → 0.49;
     * closed expression: their closed lips while speaking (:func:`closed_mouth`), when the network has a
-      closure head.
+      closure head;
+    * opening: with an ``opening`` model and the sample's ``phonetic`` windows, how its predictions blend
+      into the mouth (:func:`opening_style`, ``opening_weight``).
     """
     ok = sample.valid
     identity = sample.tracked.identity
@@ -222,8 +354,14 @@ def style_from_sample(
     closed = None
     if net.closure is not None:
         closed = closed_mouth(expression, gap, None if voiced is None else voiced[ok])
+    calibration = None
+    if opening is not None and sample.phonetic is not None and opening_weight > 0:
+        predicted, z = pmap.apply(audio_exp), opening.predict(sample.phonetic, sample.tracked.fps)[ok]
+        calibration = opening_style(
+            model, identity, expression, predicted, z, opening.sha256, opening_weight, max_gain
+        )
     info = {"video": sample.name, "frames": int(ok.sum()), "ridge": ridge, "rest": kind, "range_gain": gain}
-    return PersonStyle(pmap, rest, manifest["feature_kind"], manifest["sha256"], info, closed)
+    return PersonStyle(pmap, rest, manifest["feature_kind"], manifest["sha256"], info, closed, calibration)
 
 
 def transferred_style(own: PersonStyle, other: PersonStyle) -> PersonStyle:
@@ -246,7 +384,10 @@ def transferred_style(own: PersonStyle, other: PersonStyle) -> PersonStyle:
     closed = None if other.closed_expression is None else (other.closed_expression + shift).astype(np.float32)
     pmap = PersonMap(matrix=other.person_map.matrix, bias=(other.person_map.bias + shift).astype(np.float32))
     info = {**other.info, "style_of": other.info.get("video"), "face_of": own.info.get("video")}
-    return PersonStyle(pmap, own.rest_expression, other.feature_kind, other.audio2exp_sha256, info, closed)
+    opening = None if other.opening is None else other.opening.shifted(shift)
+    return PersonStyle(
+        pmap, own.rest_expression, other.feature_kind, other.audio2exp_sha256, info, closed, opening
+    )
 
 
 def closure_weight(probability: np.ndarray, ramp: tuple[float, float] = CLOSURE_RAMP) -> np.ndarray:
@@ -262,15 +403,21 @@ def apply_style(
     closure: np.ndarray | None,
     voice: np.ndarray | None,
     ramp: tuple[float, float] = CLOSURE_RAMP,
+    opening: np.ndarray | None = None,
 ) -> np.ndarray:
     """Expression coefficients ``(T, K_exp)`` of a person from the generic network's outputs.
 
-    Audio-expressions ``(T, A)`` → person map; where the closure head's probabilities ``closure`` ``(T,)``
-    say the lips are closed, the mouth blends to the person's closed mouth (:func:`closure_weight` with
-    ``ramp``); where
-    ``voice`` ``(T,)`` in [0, 1] (see :func:`nvp.vad.voice_activity`) is low, it blends to their rest mouth.
+    Audio-expressions ``(T, A)`` → person map; the opening model's standardised openings ``opening``
+    ``(T,)`` blend into the mouth opening (:class:`OpeningStyle`; required when the style has one); where
+    the closure head's probabilities ``closure`` ``(T,)`` say the lips are closed, the mouth blends to the
+    person's closed mouth (:func:`closure_weight` with ``ramp``); where ``voice`` ``(T,)`` in [0, 1] (see
+    :func:`nvp.vad.voice_activity`) is low, it blends to their rest mouth.
     """
     expr = style.person_map.apply(audio_exp)
+    if style.opening is not None:
+        if opening is None:
+            raise ValueError("this person's style blends in the opening model: pass its openings")
+        expr = style.opening.apply(expr, opening)
     if style.closed_expression is not None and closure is not None:
         w = closure_weight(closure, ramp)[:, None]
         expr = expr + w * (style.closed_expression - expr)
@@ -279,15 +426,37 @@ def apply_style(
     return expr.astype(np.float32)
 
 
+def style_opening_model(style: PersonStyle) -> OpeningModel | None:
+    """The opening model a style was calibrated for (the shipped one), None for a style without one."""
+    if style.opening is None:
+        return None
+    from nvp.errors import NvpError
+    from nvp.opening import default_opening_model
+
+    model = default_opening_model()
+    if model.sha256 != style.opening.model_sha256:
+        raise NvpError("this person was fitted with a different mouth-opening model; run nvp fit again")
+    return model
+
+
 def style_expressions(
     style: PersonStyle,
     net: Audio2ExpressionNet,
     windows: np.ndarray,
     voice: np.ndarray | None = None,
     ramp: tuple[float, float] = CLOSURE_RAMP,
+    phonetic: tuple[np.ndarray, float] | None = None,
+    opening: OpeningModel | None = None,
 ) -> np.ndarray:
-    """:func:`apply_style` for feature windows ``(T, W, D)`` held in memory (evaluations)."""
-    return apply_style(style, *network_outputs(net, in_blocks(windows, WINDOW_BLOCK)), voice, ramp)
+    """:func:`apply_style` for feature windows ``(T, W, D)`` held in memory (evaluations); ``phonetic``:
+    ``(T, W, 144)`` windows and the video frame rate for the ``opening`` model (default: the style's,
+    :func:`style_opening_model`), needed when the style has an opening calibration."""
+    z = None
+    if style.opening is not None:
+        if phonetic is None:
+            raise ValueError("this person's style needs phonetic feature windows")
+        z = (opening or style_opening_model(style)).predict(in_blocks(phonetic[0], WINDOW_BLOCK), phonetic[1])
+    return apply_style(style, *network_outputs(net, in_blocks(windows, WINDOW_BLOCK)), voice, ramp, z)
 
 
 def predict_expressions(
@@ -300,17 +469,46 @@ def predict_expressions(
 ) -> np.ndarray:
     """Expression coefficients ``(T, K_exp)`` for mono audio, at ``fps`` video frames per second.
 
-    Speech features → generic network → person map → closures (:func:`apply_style`); frames
-    without voice (see :func:`nvp.vad.voice_activity`, a voice-activity detector) blend smoothly towards
-    the person's rest expression, so pauses, silence, noise and music give a resting mouth.
+    Speech features → generic network → person map → opening model blend → closures
+    (:func:`apply_style`); frames without voice (see :func:`nvp.vad.voice_activity`, a voice-activity
+    detector) blend smoothly towards the person's rest expression, so pauses, silence, noise and music give
+    a resting mouth.
     """
-    from nvp.audio_features import extract_features, speaker_normalized
     from nvp.vad import voice_activity
     from nvp.windows import iter_frame_windows
 
-    feats = speaker_normalized(extract_features(audio, sample_rate, kind=style.feature_kind))
+    feats, phonetic = speech_features(audio, sample_rate, style)
     # windows are made block by block: all of them at once would be (T, 16, 191) float32, 37 MB a minute
     blocks = iter_frame_windows(feats, fps, num_frames, block=WINDOW_BLOCK)
     audio_exp, closure = network_outputs(net, blocks)
+    z = opening_outputs(style, phonetic, fps, len(audio_exp))
     voice = voice_activity(audio, sample_rate, fps, len(audio_exp))
-    return apply_style(style, audio_exp, closure, voice)
+    return apply_style(style, audio_exp, closure, voice, opening=z)
+
+
+def opening_outputs(
+    style: PersonStyle, phonetic: AudioFeatures | None, fps: float, num_frames: int
+) -> np.ndarray | None:
+    """``(num_frames,)`` the style's opening model's predictions from ``"phonetic"`` features (see
+    :func:`speech_features`) at ``fps``; None for a style without an opening calibration."""
+    if style.opening is None:
+        return None
+    from nvp.windows import iter_frame_windows
+
+    blocks = iter_frame_windows(phonetic, fps, num_frames, block=WINDOW_BLOCK)
+    return style_opening_model(style).predict(blocks, fps)
+
+
+def speech_features(
+    audio: np.ndarray, sample_rate: int, style: PersonStyle
+) -> tuple[AudioFeatures, AudioFeatures | None]:
+    """The network's features of mono audio for a style (speaker-normalised), and the ``"phonetic"``
+    features its opening calibration needs (None without one); one recogniser pass for both."""
+    from nvp.audio_features import extract_features, recogniser_features, speaker_normalized
+
+    if style.opening is None:
+        return speaker_normalized(extract_features(audio, sample_rate, kind=style.feature_kind)), None
+    if style.feature_kind == "phonemes":
+        return recogniser_features(audio, sample_rate)
+    feats = speaker_normalized(extract_features(audio, sample_rate, kind=style.feature_kind))
+    return feats, extract_features(audio, sample_rate, kind="phonetic")

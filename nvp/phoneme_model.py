@@ -149,7 +149,8 @@ class _ConformerBlock(nn.Module):
 
 
 class PhonemeModel(nn.Module):
-    """``forward(wav (B, S) float32 at 16 kHz) → (B, S // 320 + 1, 191)`` log-posteriors."""
+    """``forward(wav (B, S) float32 at 16 kHz) → (B, S // 320 + 1, 191)`` log-posteriors (``outputs``: also
+    a hidden layer's features)."""
 
     def __init__(self, mels: int = 80, classes: int = 191) -> None:
         super().__init__()
@@ -168,11 +169,19 @@ class PhonemeModel(nn.Module):
         return torch.log(mel.clamp_min(LOG_FLOOR)).half().float().transpose(1, 2)
 
     def forward(self, wav: torch.Tensor) -> torch.Tensor:
+        return self.outputs(wav)[0]
+
+    def outputs(self, wav: torch.Tensor, hidden_block: int = BLOCKS) -> tuple[torch.Tensor, torch.Tensor]:
+        """Log-posteriors ``(B, T, 191)`` and the hidden features ``(B, T, 144)`` after conformer block
+        ``hidden_block`` (1 … 4) of one pass."""
         x = self.stem(self.log_mel(wav))
         x = (0.5 * x * (1.0 + torch.erf(x / GELU_SQRT2))).transpose(1, 2)
-        for block in self.blocks:
+        hidden = x
+        for i, block in enumerate(self.blocks, 1):
             x = block(x)
-        return F.log_softmax(self.proj(x.transpose(1, 2)).transpose(1, 2), dim=-1)
+            if i == hidden_block:
+                hidden = x
+        return F.log_softmax(self.proj(x.transpose(1, 2)).transpose(1, 2), dim=-1), hidden
 
 
 def load_phoneme_model(path: Path | None = None) -> PhonemeModel:

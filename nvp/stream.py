@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from nvp.audio2exp import Audio2ExpressionNet, network_outputs
-from nvp.person import PersonStyle, apply_style
+from nvp.person import PersonStyle, apply_style, opening_outputs, speech_features
 
 SAMPLE_RATE = 16000
 LOOKAHEAD_S = 0.4
@@ -69,7 +69,6 @@ class ExpressionStream:
         return self._predict(num_video_frames(self.received / SAMPLE_RATE, self.fps), final=True)
 
     def _predict(self, end: int, final: bool) -> np.ndarray:
-        from nvp.audio_features import extract_features, speaker_normalized
         from nvp.vad import voice_activity
         from nvp.windows import frame_windows
 
@@ -87,10 +86,13 @@ class ExpressionStream:
         # the audio's end only when the stream has ended)
         f = self.net.cfg.filter_window
         n = end - first + (0 if final else f - f // 2 - 1)
-        feats = speaker_normalized(extract_features(seg, SAMPLE_RATE, kind=self.style.feature_kind))
+        feats, phonetic = speech_features(seg, SAMPLE_RATE, self.style)
         windows = frame_windows(feats, self.fps, num_frames=n)
         audio_exp, closure = network_outputs(self.net, [windows])
+        opening = opening_outputs(self.style, phonetic, self.fps, n)
         voice = voice_activity(seg, SAMPLE_RATE, self.fps, n)
-        expr = apply_style(self.style, audio_exp, closure, voice)[self.done - first : end - first]
+        expr = apply_style(self.style, audio_exp, closure, voice, opening=opening)[
+            self.done - first : end - first
+        ]
         self.done = end
         return expr

@@ -25,8 +25,9 @@ def num_video_frames(duration_s: float, fps: float) -> int:
     return max(0, int(math.ceil(x - 1e-6)))
 
 
-def _tent_smooth(values: np.ndarray, factor: float) -> np.ndarray:
-    """Low-pass ``(N, D)`` along N with a triangular kernel of half-width ``factor`` frames (normalised).
+def tent_smooth(values: np.ndarray, factor: float) -> np.ndarray:
+    """Low-pass ``(N, ...)`` along N with a triangular kernel of half-width ``factor`` frames (normalised;
+    ``factor <= 1``: unchanged).
 
     This is the anti-aliasing filter for reading features of rate ``r`` at spacing ``factor / r``: for
     ``factor == 2`` the kernel is ``[1/4, 1/2, 1/4]``. Edges are extended with the edge values.
@@ -109,7 +110,7 @@ def iter_frame_windows(
     src = features.values
     factor = features.rate / window_rate
     if factor > 1.0 + 1e-9:
-        src = _tent_smooth(src, factor)
+        src = tent_smooth(src, factor)
     n = features.num_frames
     offsets = (np.arange(window, dtype=np.float64) - window // 2) / window_rate
     for b0 in range(first, t_count, block):

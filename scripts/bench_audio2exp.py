@@ -4,7 +4,8 @@
 
 The measured path is what ``nvp dub`` runs before rendering (``nvp.person.predict_expressions``): speech
 features → per-frame windows at 25 fps → shipped Audio2ExpressionNet (per-frame net + temporal filter, and
-its closure head when it has one) → person map → closures → voice gate → expression coefficients.
+its closure head when it has one) → person map → opening model blend (phonemes) → closures → voice gate →
+expression coefficients.
 
 1. Speed on a real 19.8 s English clip (``../shared/data/audio/latentsync__demo2_audio.wav``) when
    ../shared is present, otherwise on synthetic syllable-like audio of the same length; best of
@@ -40,7 +41,8 @@ def _style(kind: str):
     """A person style for the shipped net of ``kind`` (a random but plausible map: speed only)."""
     from nvp.audio2exp import PersonMap, default_audio2exp
     from nvp.face_model import default_face_model
-    from nvp.person import PersonStyle
+    from nvp.opening import default_opening_model
+    from nvp.person import OpeningStyle, PersonStyle
 
     net, manifest = default_audio2exp(kind)
     k = default_face_model().num_exp
@@ -49,7 +51,12 @@ def _style(kind: str):
         rng.normal(0, 0.1, (k, net.cfg.audio_exp_dim)).astype(np.float32), np.zeros(k, np.float32)
     )
     closed = np.zeros(k, np.float32) if net.closure is not None else None  # the closure path runs too
-    return net, PersonStyle(pmap, np.zeros(k, np.float32), kind, manifest["sha256"], {}, closed)
+    opening = None  # and the opening model's (phonemes: features of the same recogniser pass)
+    if kind == "phonemes":
+        w = rng.normal(0, 0.1, k).astype(np.float32)
+        d = (w / (w @ w)).astype(np.float32)
+        opening = OpeningStyle(w, 0.5, d, 0.25, 0.3, 0.0, default_opening_model().sha256)
+    return net, PersonStyle(pmap, np.zeros(k, np.float32), kind, manifest["sha256"], {}, closed, opening)
 
 
 def speed(audio: np.ndarray, kind: str, repeats: int) -> dict:

@@ -47,7 +47,7 @@ import numpy as np
 from nvp.app.corpus import load_sample
 from nvp.app.report import markdown_table
 from nvp.audio2exp import load_net
-from nvp.audio_features import extract_features, phoneme_labels, speaker_normalized
+from nvp.audio_features import extract_features, phoneme_labels, recogniser_features
 from nvp.face_model import default_face_model
 from nvp.media import read_audio
 from nvp.metrics import (
@@ -62,8 +62,10 @@ from nvp.metrics import (
     pause_behaviour,
     pause_mask,
 )
+from nvp.opening import OpeningModel
 from nvp.person import (
     CLOSURE_RAMP,
+    OPENING_WEIGHT,
     RANGE_GAIN_MAX,
     VideoSample,
     style_expressions,
@@ -81,10 +83,11 @@ CONDITIONS = {"clean": None, "noise 10 dB": 10.0, "noise 0 dB": 0.0}
 
 
 def evaluate_video(
-    name: str, lang: str, who_name: str, args, net, manifest, model, labels_idx
+    name: str, lang: str, who_name: str, args, net, manifest, opening, model, labels_idx
 ) -> tuple[dict, list[dict]]:
     video = SHARED / "video" / name
     s = load_sample(video, args.cache, "phonemes", progress=False)
+    phonetic = load_sample(video, args.cache, "phonetic", progress=False).windows
     seq = s.tracked
     fps, n = seq.fps, seq.num_frames
     split = int(round(n * TRAIN_FRACTION))
@@ -104,9 +107,16 @@ def evaluate_video(
     bil = bilabial_frames(post.values, labels_idx, post.rate, fps, n)[te] & ok
     voiced = frame_speech_probability(audio, SR, fps, n) >= 0.5
     # the person's style from the first 80 %, as nvp fit makes it
-    fit_part = VideoSample(name, s.windows[:split], seq.head(split))
+    fit_part = VideoSample(name, s.windows[:split], seq.head(split), phonetic=phonetic[:split])
     style = style_from_sample(
-        net, manifest, fit_part, model, voiced=voiced[:split], max_gain=args.range_gain_max
+        net,
+        manifest,
+        fit_part,
+        model,
+        voiced=voiced[:split],
+        max_gain=args.range_gain_max,
+        opening=opening,
+        opening_weight=args.opening_weight,
     )
     rest_gap = float(model.inner_lip_gap(seq.identity, style.rest_expression[None])[0])
     rest_tol = 0.05 * float(np.nanpercentile(gap_all[tr], 95))
@@ -135,14 +145,15 @@ def evaluate_video(
     start = int(round(split / fps * SR))
     seed = int(hashlib.sha256(name.encode()).hexdigest()[:8], 16)
     for cond, snr in CONDITIONS.items():
-        x = audio
-        windows = s.windows
+        x, windows, phon = audio, s.windows, phonetic
         if snr is not None:
             x = audio.copy()
             x[start:] = with_white_noise(audio[start:], SR, snr, seed)
-            feats = speaker_normalized(extract_features(x, SR, kind="phonemes"))
+            feats, phon_feats = recogniser_features(x, SR)
             windows = frame_windows(feats, fps, num_frames=n).astype(np.float32)
-        pred = style_expressions(style, net, windows, voice_activity(x, SR, fps, n), args.closure_ramp)[te]
+            phon = frame_windows(phon_feats, fps, num_frames=n).astype(np.float32)
+        voice = voice_activity(x, SR, fps, n)
+        pred = style_expressions(style, net, windows, voice, args.closure_ramp, (phon, fps), opening)[te]
         gap = model.inner_lip_gap(seq.identity, pred)
         varies = gap[ok].std() > 1e-9 and gap_real[ok].std() > 1e-9
         rate = bilabial_closure_rate(gap, bil, closed, lead) if bil.any() else float("nan")
@@ -238,6 +249,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--range-gain-max", type=float, default=RANGE_GAIN_MAX, help="widest person-map gain (1: no widening)"
     )
+    ap.add_argument("--opening", type=Path, default=ASSETS / "opening_phonetic.json", help="opening model")
+    ap.add_argument(
+        "--opening-weight",
+        type=float,
+        default=OPENING_WEIGHT,
+        help="share of the opening model in the mouth opening (0: the person map alone)",
+    )
     args = ap.parse_args(argv)
     if not SHARED.is_dir():
         print(f"no evaluation data: {SHARED} does not exist")
@@ -247,7 +265,9 @@ def main(argv: list[str] | None = None) -> int:
     names = [c for c in split[args.set] if not args.videos or c in args.videos]
     model = default_face_model()
     net, manifest = load_net(args.net)
+    opening = OpeningModel.load(args.opening)
     trained_on = set(manifest["split"]["train"]) | set(manifest["split"]["validation"])
+    trained_on |= set(opening.info["split"]["train"]) | set(opening.info["split"]["validation"])
     if args.set == "test" and trained_on & set(names):
         raise SystemExit(f"test clips used by the network: {sorted(trained_on & set(names))}")
     labels_idx = bilabial_classes(phoneme_labels())
@@ -256,7 +276,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     for i, name in enumerate(names):
         who_name, lang = who[name]
-        real, r = evaluate_video(name, lang, who_name, args, net, manifest, model, labels_idx)
+        real, r = evaluate_video(name, lang, who_name, args, net, manifest, opening, model, labels_idx)
         reals.append(real)
         rows += r
         print(

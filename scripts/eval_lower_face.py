@@ -42,12 +42,16 @@ def _style_and_audio_expressions(video: Path, seq, split: int, cache: Path):
     from nvp.audio2exp import default_audio2exp
     from nvp.face_model import default_face_model
     from nvp.media import audio_rate, read_audio
-    from nvp.person import VideoSample, predict_expressions, style_from_sample
+    from nvp.opening import FEATURE_KIND, default_opening_model
+    from nvp.person import VideoSample, predict_expressions, style_from_sample, voiced_frames
 
     net, manifest = default_audio2exp("phonemes")
     windows = features_cached(video, cache, "phonemes", seq.fps, seq.num_frames)
-    train = VideoSample(video.name, windows[:split], seq.head(split))
-    style = style_from_sample(net, manifest, train, default_face_model())
+    phonetic = features_cached(video, cache, FEATURE_KIND, seq.fps, seq.num_frames)
+    train = VideoSample(video.name, windows[:split], seq.head(split), phonetic=phonetic[:split])
+    voiced = voiced_frames(video, seq.fps, seq.num_frames)[:split]
+    opening = default_opening_model()
+    style = style_from_sample(net, manifest, train, default_face_model(), voiced=voiced, opening=opening)
     rate = audio_rate(video)
     audio = read_audio(video, rate)[int(round(split / seq.fps * rate)) :]
     return predict_expressions(audio, rate, seq.fps, style, net, num_frames=seq.num_frames - split)

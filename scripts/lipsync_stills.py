@@ -1,6 +1,7 @@
 """Stills of p / b / m frames: the real mouth next to two audio-driven predictions of it.
 
     python scripts/lipsync_stills.py VIDEO [VIDEO ...] --before OLD.json --after NEW.json [--out DIR]
+        [--before-opening-weight 0] [--after-opening-weight 0.75]
 
 For each video of ``../shared/data/video`` the person's style is made from the first 80 % of the frames (as
 ``nvp fit`` does, ``nvp.person.style_from_sample``) with each network, the last 20 % is predicted from the
@@ -8,7 +9,8 @@ clip's own audio (``nvp.person.style_expressions`` with the voice activity), and
 held-out frames where the audio says p, b or m, a PNG shows the real frame's mouth three times: with the
 tracked lips (green: real), with the lips of the prediction made by ``--before`` (red) and by ``--after``
 (blue), each outline the model's outer and inner lip contour under the tracked head pose. ``--before-flat``
-turns off the range calibration for the ``--before`` network (what nvp did before it existed).
+turns off the range calibration for the ``--before`` network (what nvp did before it existed); the
+opening weights set how much of the generic opening model (``nvp.opening``) each side blends in (0: none).
 """
 
 from __future__ import annotations
@@ -27,7 +29,8 @@ from nvp.face_model import default_face_model
 from nvp.geometry import posed
 from nvp.media import frames_at, read_audio
 from nvp.metrics import bilabial_classes, bilabial_frames
-from nvp.person import RANGE_GAIN_MAX, VideoSample, style_expressions, style_from_sample
+from nvp.opening import default_opening_model
+from nvp.person import OPENING_WEIGHT, RANGE_GAIN_MAX, VideoSample, style_expressions, style_from_sample
 from nvp.vad import frame_speech_probability, voice_activity
 
 HERE = Path(__file__).resolve().parent
@@ -36,8 +39,10 @@ SR = 16000
 COLOURS = {"real": (0, 200, 0), "before": (0, 0, 230), "after": (230, 80, 0)}  # BGR
 
 
-def predictions(video: Path, cache: Path, nets: dict, flat: set[str]) -> tuple:
+def predictions(video: Path, cache: Path, nets: dict, flat: set[str], weights: dict[str, float]) -> tuple:
     s = load_sample(video, cache, "phonemes", progress=False)
+    phonetic = load_sample(video, cache, "phonetic", progress=False).windows
+    opening = default_opening_model()
     seq = s.tracked
     n = seq.num_frames
     split = int(round(0.8 * n))
@@ -47,10 +52,19 @@ def predictions(video: Path, cache: Path, nets: dict, flat: set[str]) -> tuple:
     model = default_face_model()
     out = {"real": seq.expression}
     for key, (net, manifest) in nets.items():
-        part = VideoSample(video.name, s.windows[:split], seq.head(split))
+        part = VideoSample(video.name, s.windows[:split], seq.head(split), phonetic=phonetic[:split])
         max_gain = 1.0 if key in flat else RANGE_GAIN_MAX
-        style = style_from_sample(net, manifest, part, model, voiced=voiced[:split], max_gain=max_gain)
-        out[key] = style_expressions(style, net, s.windows, voice)
+        style = style_from_sample(
+            net,
+            manifest,
+            part,
+            model,
+            voiced=voiced[:split],
+            max_gain=max_gain,
+            opening=opening,
+            opening_weight=weights[key],
+        )
+        out[key] = style_expressions(style, net, s.windows, voice, phonetic=(phonetic, seq.fps))
     post = extract_features(audio, SR, kind="phonemes")
     bil = bilabial_frames(post.values, bilabial_classes(phoneme_labels()), post.rate, seq.fps, n)
     bil[:split] = False
@@ -87,6 +101,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--before", type=Path, required=True, help="network before (.json)")
     ap.add_argument("--before-flat", action="store_true", help="no range calibration for --before")
     ap.add_argument("--after", type=Path, required=True, help="network after (.json)")
+    ap.add_argument("--before-opening-weight", type=float, default=0.0, help="opening model share, --before")
+    ap.add_argument(
+        "--after-opening-weight", type=float, default=OPENING_WEIGHT, help="opening model share, --after"
+    )
     ap.add_argument("--frames", type=int, default=4, help="bilabial frames per video")
     ap.add_argument("--cache", type=Path, default=Path("/tmp/nvp-cache"))
     ap.add_argument("--out", type=Path, default=Path("out/lipsync_stills"))
@@ -99,7 +117,11 @@ def main(argv: list[str] | None = None) -> int:
     for name in args.videos:
         video = SHARED / "video" / name
         seq, model, exprs, bil = predictions(
-            video, args.cache, nets, {"before"} if args.before_flat else set()
+            video,
+            args.cache,
+            nets,
+            {"before"} if args.before_flat else set(),
+            {"before": args.before_opening_weight, "after": args.after_opening_weight},
         )
         idx = np.flatnonzero(bil)
         pick = (

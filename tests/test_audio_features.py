@@ -16,6 +16,7 @@ from nvp.audio_features import (
     PHONEME_DIM,
     PHONEME_LOG_FLOOR,
     PHONEME_RATE,
+    PHONETIC_DIM,
     SAMPLE_RATE,
     AudioFeatures,
     _phoneme_chunks,
@@ -23,6 +24,7 @@ from nvp.audio_features import (
     features_from_file,
     mel_filterbank,
     phoneme_labels,
+    recogniser_features,
     speaker_normalized,
 )
 from nvp.errors import MediaError, NvpError
@@ -122,6 +124,18 @@ def test_phoneme_shapes_and_rate():
     assert len(labels) == PHONEME_DIM and labels[-1] == "<blank>"
 
 
+def test_phonetic_features_come_from_the_same_pass():
+    """The recogniser's hidden features: same frames as the posteriors, one pass gives both, and they
+    describe the sound (not constant over a syllable-like signal)."""
+    audio = babble(1.0)
+    post, phon = recogniser_features(audio, SR)
+    assert phon.kind == "phonetic" and phon.rate == post.rate == PHONEME_RATE
+    assert phon.values.shape == (SR // 320 + 1, PHONETIC_DIM) and phon.values.dtype == np.float32
+    np.testing.assert_array_equal(post.values, extract_features(audio, SR, kind="phonemes").values)
+    np.testing.assert_array_equal(phon.values, extract_features(audio, SR, kind="phonetic").values)
+    assert np.isfinite(phon.values).all() and phon.values.std(0).mean() > 0.1
+
+
 def test_other_sample_rate_is_resampled():
     f = extract_features(speechlike(1.5, sr=22050), 22050, kind="mel")
     assert f.duration_s == pytest.approx(1.5, abs=1e-4)
@@ -211,15 +225,19 @@ def test_chunk_assembly_is_exact_for_a_local_recognizer(monkeypatch):
         padded[: len(audio)] = audio
         energy = (padded.reshape(n, 320) ** 2).mean(axis=1, keepdims=True)
         logits = np.log(energy + 1e-6) * np.linspace(0.0, 1.0, PHONEME_DIM)[None, :]
-        return (logits - np.log(np.exp(logits).sum(axis=1, keepdims=True))).astype(np.float32)
+        logp = (logits - np.log(np.exp(logits).sum(axis=1, keepdims=True))).astype(np.float32)
+        return logp, logp[:, :PHONETIC_DIM] * 0.5 + 1.0
 
     monkeypatch.setattr(audio_features, "_recognizer", lambda: fake)
     audio = np.tile(speechlike(7.0, seed=3), 10)  # 70 s
-    whole = audio_features._extract_phonemes(audio, chunk_s=1000.0)  # one pass (fake has no limit)
+    whole, whole_hidden = audio_features._extract_phonemes(audio, chunk_s=1000.0)  # one pass (no limit)
     for chunk_s in [28.0, 5.3]:
         chunked = extract_features(audio, SR, kind="phonemes", chunk_s=chunk_s)
         assert chunked.values.shape == (70 * SR // 320 + 1, PHONEME_DIM)
         np.testing.assert_allclose(chunked.values, whole, atol=1e-4)
+        phonetic = extract_features(audio, SR, kind="phonetic", chunk_s=chunk_s)
+        assert phonetic.values.shape == (70 * SR // 320 + 1, PHONETIC_DIM)
+        np.testing.assert_allclose(phonetic.values, whole_hidden, atol=1e-4)
 
 
 def test_phonemes_chunked_close_to_whole():

@@ -344,6 +344,7 @@ def test_expression_stream_is_causal_and_follows_whole_file_prediction(bundle):
     from nvp.windows import num_video_frames
 
     style = PersonStyle.load(bundle / "style.json")
+    assert style.opening is not None  # nvp fit calibrated the opening model: the stream uses it too
     net, _ = default_audio2exp(style.feature_kind)
     audio = speechlike(6.0, 16000, seed=3)
     whole = predict_expressions(audio, 16000, 25.0, style, net)

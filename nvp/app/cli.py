@@ -73,17 +73,44 @@ def _cmd_train_audio2exp(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_train_opening(args: argparse.Namespace) -> int:
+    from nvp.app.corpus import corpus_split
+    from nvp.app.train_opening import train_opening
+    from nvp.face_model import default_face_model
+    from nvp.opening import FEATURE_KIND
+
+    cache = Path(args.cache) if args.cache else Path(args.output).parent / "cache"
+    train_set, val_set, split = corpus_split(
+        Path(args.corpus), args.val, args.exclude, cache, FEATURE_KIND, not args.quiet
+    )
+    out = Path(args.output)
+    _, summary = train_opening(
+        train_set, val_set, default_face_model(), out, provenance={"split": split, "corpus": str(args.corpus)}
+    )
+    print(
+        f"ridge {summary['ridge']:g}: validation correlation {summary['validation_corr']:.3f} on "
+        f"{len(val_set)} videos, {summary['train_frames']} training frames → {out.with_suffix('.json')}"
+    )
+    return 0
+
+
 def _cmd_person_map(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
     from nvp.app.corpus import load_sample
     from nvp.audio2exp import default_audio2exp
     from nvp.face_model import default_face_model
+    from nvp.opening import FEATURE_KIND, default_opening_model
     from nvp.person import style_from_sample, voiced_frames
 
     net, manifest = default_audio2exp(args.features)
     cache = Path(args.cache) if args.cache else Path(args.output).parent / ".nvp-cache"
     sample = load_sample(Path(args.video), cache, args.features, progress=not args.quiet)
+    phonetic = load_sample(Path(args.video), cache, FEATURE_KIND, progress=False).windows
+    sample = replace(sample, phonetic=phonetic)
     voiced = voiced_frames(Path(args.video), sample.tracked.fps, sample.tracked.num_frames)
-    style = style_from_sample(net, manifest, sample, default_face_model(), voiced=voiced)
+    opening = default_opening_model()
+    style = style_from_sample(net, manifest, sample, default_face_model(), voiced=voiced, opening=opening)
     js = style.save(Path(args.output))
     print(f"person map from {int(sample.valid.sum())} frames → {js}")
     return 0
@@ -592,6 +619,18 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--cache", type=Path, help="tracking/feature cache (default: OUTPUT/cache)")
     p.set_defaults(func=_cmd_train_audio2exp)
+
+    p = sub.add_parser(
+        "train-opening", help="fit the generic mouth-opening model (closed form) on a folder of videos"
+    )
+    p.add_argument("corpus", type=Path, help="folder of talking-head videos with audio")
+    p.add_argument("-o", "--output", type=Path, required=True, help="output model (.npz + .json)")
+    p.add_argument(
+        "--val", nargs="*", help="file names of validation videos (default: 5 spread over the list)"
+    )
+    p.add_argument("--exclude", nargs="*", help="file names to leave out entirely")
+    p.add_argument("--cache", type=Path, help="tracking/feature cache (default: next to OUTPUT)")
+    p.set_defaults(func=_cmd_train_opening)
 
     p = sub.add_parser("person-map", help="learn a person's talking style (closed form) from their video")
     p.add_argument("video", type=Path, help="the person talking (video with audio)")

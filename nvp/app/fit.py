@@ -132,17 +132,20 @@ def fit(
         from nvp.app.corpus import features_cached
         from nvp.audio2exp import default_audio2exp
         from nvp.face_model import default_face_model
+        from nvp.opening import FEATURE_KIND, default_opening_model
         from nvp.person import VideoSample, style_from_sample, voiced_frames
 
         t0 = _stage("person style")
         seq = TrackedSequence.load(builder.path("tracked"))
-        windows = features_cached(
-            builder.path("target"), builder.work / "cache", cfg.features, seq.fps, seq.num_frames
-        )
+        cache = builder.work / "cache"
+        windows = features_cached(builder.path("target"), cache, cfg.features, seq.fps, seq.num_frames)
+        phonetic = features_cached(builder.path("target"), cache, FEATURE_KIND, seq.fps, seq.num_frames)
         net, manifest = default_audio2exp(cfg.features)
-        sample = VideoSample(name=video.name, windows=windows, tracked=seq)
+        sample = VideoSample(name=video.name, windows=windows, tracked=seq, phonetic=phonetic)
         voiced = voiced_frames(builder.path("target"), seq.fps, seq.num_frames)
-        style = style_from_sample(net, manifest, sample, default_face_model(), voiced=voiced)
+        style = style_from_sample(
+            net, manifest, sample, default_face_model(), voiced=voiced, opening=default_opening_model()
+        )
         style.save(builder.path("style"))
         builder.mark_done("style", seconds=round(time.perf_counter() - t0, 2))
 

@@ -1,0 +1,206 @@
+"""The generic mouth-opening model (closed-form fit, smoothing, files) and how a person's style uses it."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+from test_audio2exp import fake_sample
+from test_cli import nvp
+
+from nvp.app.train_opening import opening_targets, train_opening
+from nvp.audio2exp import PersonMap
+from nvp.opening import OpeningModel, default_opening_model, fit_opening_model, standardized_opening
+from nvp.person import PersonStyle, apply_style, opening_style, style_from_sample, transferred_style
+
+K = 64
+
+
+def _linear_videos(n_videos=3, frames=200, dim=6, seed=0):
+    """Windows ``(T, 16, dim)`` and targets that are an exact linear function of every other sample."""
+    rng = np.random.default_rng(seed)
+    true = rng.normal(size=(8, dim))
+    windows = [rng.normal(size=(frames, 16, dim)).astype(np.float32) for _ in range(n_videos)]
+    targets = [np.einsum("twd,wd->t", w[:, ::2], true) + 0.5 for w in windows]
+    return windows, targets, true
+
+
+def test_the_fit_recovers_a_linear_read_out_and_skips_missing_frames():
+    windows, targets, true = _linear_videos()
+    targets[1][:20] = np.nan  # frames without a face
+    m = fit_opening_model(windows, targets, ridge=1e-3)
+    np.testing.assert_allclose(m.weight, true, atol=1e-3)
+    assert m.bias == pytest.approx(0.5, abs=1e-3)
+    # fps 10: the smoothing half-width is below a frame, so the prediction is the read-out itself
+    np.testing.assert_allclose(m.predict(windows[0], fps=10.0), targets[0], atol=1e-3)
+    # video by video accumulation equals one pass over all frames
+    one = fit_opening_model([np.concatenate(windows)], [np.concatenate(targets)], ridge=5.0)
+    np.testing.assert_allclose(fit_opening_model(windows, targets, ridge=5.0).weight, one.weight, atol=1e-5)
+    # a strong ridge shrinks the read-out towards the mean
+    assert np.abs(fit_opening_model(windows, targets, ridge=1e6).weight).max() < 0.5 * np.abs(true).max()
+    with pytest.raises(ValueError, match="no frames"):
+        fit_opening_model([], [], ridge=1.0)
+
+
+def test_predictions_are_lightly_smoothed_in_time_and_blocks_equal_one_pass():
+    w = np.zeros((30, 16, 1), np.float32)
+    w[10:12] = -1.0  # a 2-frame closure
+    m = OpeningModel(weight=np.ones((8, 1), np.float32), bias=0.0)
+    z = m.predict(w, fps=25.0)  # 1/4, 1/2, 1/4
+    assert z[10] == pytest.approx(-6.0) and z[11] == pytest.approx(-6.0)  # 3/4 of the depth of -8 kept
+    assert z[9] == pytest.approx(-2.0) and z[13] == 0.0
+    np.testing.assert_allclose(m.predict([w[:7], w[7:20], w[20:]], fps=25.0), z)
+    assert m.predict([], fps=25.0).shape == (0,)
+
+
+def test_model_files_round_trip_and_the_shipped_model_loads(tmp_path):
+    windows, targets, _ = _linear_videos(dim=4)
+    m = dataclasses.replace(fit_opening_model(windows, targets, 1.0), info={"ridge": 1.0})
+    back = OpeningModel.load(m.save(tmp_path / "op"))
+    np.testing.assert_array_equal(back.weight, m.weight)
+    assert back.bias == pytest.approx(m.bias) and back.info["ridge"] == 1.0 and len(back.sha256) == 64
+    shipped = default_opening_model()
+    assert shipped.weight.shape == (8, 144) and len(shipped.sha256) == 64
+    split = shipped.info["split"]
+    assert split["validation"] and not set(split["validation"]) & set(split["train"])
+    assert shipped.info["validation_corr"] > 0.5  # measured on held-out people when it was made
+
+
+def test_standardized_opening():
+    gap = np.array([1.0, 2.0, 3.0, 100.0])
+    z = standardized_opening(gap, np.array([True, True, True, False]))
+    np.testing.assert_allclose(z[:3], [-1.2247449, 0.0, 1.2247449], atol=1e-6)
+    assert np.all(standardized_opening(np.ones(5), np.ones(5, bool)) == 0)
+
+
+def _person(face_model, frames=300, seed=0):
+    """A person whose mouth opening follows a latent signal, their map's (compressed, noisy) prediction of
+    it, and the opening model's (clean) one."""
+    rng = np.random.default_rng(seed)
+    latent = np.convolve(rng.normal(size=frames + 4), np.ones(5) / 5, "valid")
+    latent = (latent - latent.mean()) / latent.std()
+    jaw = np.zeros(K, np.float32)
+    jaw[:4] = [1.5, 0.5, -0.3, 0.2]  # an expression direction that opens the mouth
+    base = rng.normal(0, 0.05, (frames, K))
+    expression = (base + np.outer(latent + 1.5, jaw)).astype(np.float32)
+    noise = rng.normal(size=frames)
+    predicted = (base + np.outer(0.4 * (latent + 0.8 * noise) + 1.5, jaw)).astype(np.float32)
+    return expression, predicted, latent.astype(np.float32)
+
+
+def test_the_opening_style_moves_the_mouth_towards_the_opening_model(face_model):
+    identity = np.zeros(face_model.num_id, np.float32)
+    expression, predicted, z = _person(face_model)
+    real = face_model.inner_lip_gap(identity, expression)
+    for weight in (0.75, 1.0):
+        op = opening_style(face_model, identity, expression, predicted, z, "a" * 64, weight)
+        assert float(op.direction @ op.gap_weights) == pytest.approx(1.0, abs=1e-5)
+        out = op.apply(predicted, z)
+        gap = face_model.inner_lip_gap(identity, out)
+        before = np.corrcoef(face_model.inner_lip_gap(identity, predicted), real)[0, 1]
+        after = np.corrcoef(gap, real)[0, 1]
+        assert after > before + 0.1
+        spread = np.percentile(gap, 95) - np.percentile(gap, 5)
+        assert spread == pytest.approx(np.percentile(real, 95) - np.percentile(real, 5), rel=0.1)
+    # with the opening model alone and a perfect read-out the tracked opening comes back
+    op = opening_style(face_model, identity, expression, predicted, z, "a" * 64, 1.0)
+    out, real_opening = op.opening_of(op.apply(predicted, z)), op.opening_of(expression)
+    assert np.corrcoef(out, real_opening)[0, 1] > 0.97 and np.abs(out - real_opening).mean() < 0.03
+    # nothing to calibrate on: no opening style
+    still = np.repeat(expression[:1], 50, 0)
+    assert opening_style(face_model, identity, still, still, z[:50], "a" * 64) is None
+
+
+def _styles(face_model):
+    expression, predicted, z = _person(face_model)
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=(len(z), 32)).astype(np.float32)
+    identity = np.zeros(face_model.num_id, np.float32)
+    op = opening_style(face_model, identity, expression, predicted, z, "a" * 64)
+    pm = PersonMap(rng.normal(0, 0.05, (K, 32)).astype(np.float32), expression.mean(0))
+    style = PersonStyle(pm, expression.mean(0), "phonemes", "0" * 64, {"video": "x"}, expression[0], op)
+    return style, a, z
+
+
+def test_styles_with_an_opening_save_load_apply_and_transfer(face_model, tmp_path):
+    style, a, z = _styles(face_model)
+    back = PersonStyle.load(style.save(tmp_path / "s"))
+    assert json.loads((tmp_path / "s.json").read_text())["version"] == 3
+    np.testing.assert_allclose(
+        apply_style(back, a, None, None, opening=z), apply_style(style, a, None, None, opening=z), atol=1e-5
+    )
+    with pytest.raises(ValueError, match="openings"):
+        apply_style(style, a, None, None)
+    # version-2 styles (no opening) still load and predict without one
+    old = dataclasses.replace(style, opening=None)
+    assert PersonStyle.load(old.save(tmp_path / "old")).opening is None
+    # style transfer: the other's opening motion, shifted onto the own closed lips
+    own = dataclasses.replace(old, closed_expression=old.closed_expression + 0.1)
+    moved = transferred_style(own, style)
+    shift = own.closed_expression - style.closed_expression
+    np.testing.assert_allclose(
+        apply_style(moved, a, None, None, opening=z),
+        apply_style(style, a, None, None, opening=z) + shift,
+        atol=1e-5,
+    )
+
+
+def test_style_from_sample_calibrates_the_opening_when_given_phonetic_windows(face_model):
+    from nvp.audio2exp import Audio2ExpConfig, Audio2ExpressionNet
+
+    s = fake_sample(face_model, "p", 0, dim=12)
+    net = Audio2ExpressionNet(Audio2ExpConfig(feature_dim=12)).eval()
+    manifest = {"feature_kind": "phonemes", "sha256": "0" * 64}
+    opening = OpeningModel(
+        np.random.default_rng(0).normal(size=(8, 12)).astype(np.float32), 0.0, sha256="b" * 64
+    )
+    assert style_from_sample(net, manifest, s, face_model, opening=opening).opening is None  # no windows
+    with_phonetic = dataclasses.replace(s, phonetic=s.windows)
+    style = style_from_sample(net, manifest, with_phonetic, face_model, opening=opening)
+    assert style.opening is not None and style.opening.model_sha256 == "b" * 64
+    assert (
+        style_from_sample(net, manifest, with_phonetic, face_model, opening=opening, opening_weight=0).opening
+        is None
+    )
+
+
+def _opening_sample(face_model, name, seed):
+    """A toy video whose mouth opens with the first feature channel at the window's centre."""
+    s = fake_sample(face_model, name, seed)
+    jaw = np.zeros(K, np.float32)
+    jaw[:3] = [1.5, 0.5, -0.3]
+    drive = np.tanh(s.windows[:, 8, 0])
+    expression = np.outer(drive + 1.5, jaw).astype(np.float32)
+    return dataclasses.replace(s, tracked=dataclasses.replace(s.tracked, expression=expression))
+
+
+def test_train_opening_chooses_the_ridge_on_validation_videos(face_model, tmp_path):
+    train_set = [_opening_sample(face_model, f"t{i}", i) for i in range(3)]
+    val_set = [_opening_sample(face_model, "v", 9)]
+    model, summary = train_opening(train_set, val_set, face_model, tmp_path / "op", ridges=(1.0, 1e9))
+    assert summary["ridge"] == 1.0 and set(summary["validation_corr_by_ridge"]) == {"1", "1e+09"}
+    assert summary["validation_corr"] > summary["validation_corr_by_ridge"]["1e+09"]
+    assert summary["validation_corr"] > 0.5 and summary["train_frames"] == 360
+    assert OpeningModel.load(tmp_path / "op.json").sha256 == model.sha256
+    t = opening_targets(train_set[0], face_model)
+    assert t.shape == (120,) and abs(float(t.mean())) < 1e-5
+
+
+def test_train_opening_command(demo_clip, tmp_path):
+    import shutil
+
+    from nvp.app.demo_clip import make_demo_clip
+
+    corpus = tmp_path / "corpus"
+    corpus.mkdir()
+    shutil.copyfile(demo_clip.path, corpus / "a.mp4")
+    make_demo_clip(corpus / "b.mp4", seconds=1.2, size=256, seed=3)
+    proc = nvp(
+        "train-opening", corpus, "-o", tmp_path / "op", "--val", "b.mp4", "--cache", tmp_path / "cache"
+    )
+    assert proc.returncode == 0, proc.stderr
+    m = json.loads((tmp_path / "op.json").read_text())
+    assert m["info"]["split"]["train"] == ["a.mp4"] and m["info"]["feature_kind"] == "phonetic"
+    assert OpeningModel.load(tmp_path / "op.json").weight.shape == (8, 144)
