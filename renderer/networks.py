@@ -176,7 +176,7 @@ def inner_weight(mask: torch.Tensor, erode: float = 0.015) -> torch.Tensor:
     """Blend weight ``(B, 1, H, W)`` of the interior render in the final image: 0 on the mesh's
     silhouette, rising to 1 over ``2 · erode`` of the crop side inside it, so the silhouette, which never
     matches the real face contour exactly, is left to the compositing network."""
-    r = max(1, round(erode * mask.shape[-1]))
+    r = max(1, round(erode * int(mask.shape[-1])))
     return masks.box_blur(masks.erode(mask, r + 1), r)
 
 

@@ -176,12 +176,20 @@ def render_frames(
     out, with a progress bar that is closed however the loop ends (an error, or the consumer stopping).
 
     A variant ``None`` re-renders the frame from its own tracking (re-creation); a :data:`Geometry` renders
-    ``geometry(j, index, tracked_cam)`` and the replaced region also covers the tracked face (a dub)."""
+    ``geometry(j, index, tracked_cam)`` and the replaced region also covers the tracked face (a dub).
+
+    On the CPU, PyTorch's thread count follows the cores other processes leave free
+    (:class:`nvp.threads.ThreadGovernor`)."""
     from tqdm import tqdm
 
+    from nvp.threads import ThreadGovernor
+
+    governor = ThreadGovernor() if str(fr.device) == "cpu" else None
     bar = tqdm(total=len(indices), desc=desc, unit="frame", disable=not progress)
     try:
         for j, (k, frame) in enumerate(zip(indices, frames, strict=False)):
+            if governor is not None:
+                governor.update()
             k = int(k)
             tracked = fr.tracked(k)
             out = {

@@ -142,6 +142,7 @@ def live(
     from nvp.media import VideoWriter
     from nvp.provenance import synthetic_mark
     from nvp.stream import LOOKAHEAD_S, ExpressionStream
+    from nvp.threads import ThreadGovernor
     from renderer.render import FrameRenderer
 
     if output is None and raw_out is None:
@@ -184,9 +185,13 @@ def live(
         else _NoWriter() as vw,
     ):
 
+        governor = ThreadGovernor() if str(device) == "cpu" else None
+
         def emit(expressions: np.ndarray) -> None:
             nonlocal dropped, last, next_status
             for e in expressions:
+                if governor is not None:
+                    governor.update()
                 j = len(latency)
                 k, frame = next(footage)
                 late = time.perf_counter() - arrival(j)
