@@ -166,6 +166,19 @@ class FrameCache:
         return cls(**{k: art.arrays[k] for k in CACHE_FIELDS})
 
 
+CACHE_BUDGET_MB = 1536.0
+"""Most memory the renderer's training frames may take (:func:`build_cache`). A 3-minute video is 4,500
+frames: 1.6 GB at the ``cpu`` preset's 192² crop, 2.9 GB at ``quality``'s 256², which took ``nvp fit`` on a
+3-minute 1080p video to 5.5 GB peak (``scripts/bench_fit.py --preset quality``). Beyond the budget every
+n-th frame is kept; neighbouring frames are nearly alike, and a fit draws 16,000 training samples at most."""
+
+
+def cache_frame_bytes(size: int, num_vertices: int) -> int:
+    """Bytes one cached frame takes at crop ``size``: crop (3), uv (2 × float16) and three masks per pixel,
+    plus its vertices."""
+    return size * size * (3 + 4 + 3) + 12 * num_vertices
+
+
 def build_cache(
     video: Path,
     seq: TrackedSequence,
@@ -173,12 +186,17 @@ def build_cache(
     preset: Preset,
     frames: np.ndarray,
     progress: bool = True,
+    budget_mb: float = CACHE_BUDGET_MB,
 ) -> FrameCache:
-    """Decode ``video`` once and keep the crops and geometry of ``frames`` (valid tracked frames)."""
+    """Decode ``video`` once and keep the crops and geometry of ``frames`` (valid tracked frames; evenly
+    thinned to fit ``budget_mb``, see :data:`CACHE_BUDGET_MB`)."""
     from nvp.media import iter_frames
 
-    frames = np.asarray(sorted(int(f) for f in frames if seq.valid[f]))
+    frames = np.asarray(sorted(int(f) for f in frames if seq.valid[f]), dtype=np.int64)
     s = preset.crop
+    limit = max(1, int(budget_mb * 2**20 // cache_frame_bytes(s, model.num_vertices)))
+    if len(frames) > limit:
+        frames = np.unique(frames[np.round(np.linspace(0, len(frames) - 1, limit)).astype(int)])
     boxes = sequence_boxes(model, seq)
     n = len(frames)
     cache = FrameCache(

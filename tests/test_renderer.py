@@ -164,6 +164,20 @@ def test_final_image_keeps_the_interior_inside_and_the_footage_outside():
     assert final.mean(1, keepdim=True)[blanked].min() > 0.2
 
 
+def test_the_frame_cache_keeps_to_its_memory_budget(footage, face_model):
+    from renderer.data import cache_frame_bytes
+
+    path, seq = footage
+    per_frame = cache_frame_bytes(TINY.crop, face_model.num_vertices)
+    cache = build_cache(
+        path, seq, face_model, TINY, np.arange(10), progress=False, budget_mb=4.5 * per_frame / 2**20
+    )
+    np.testing.assert_array_equal(cache.frames, [0, 3, 6, 9])  # 4 frames fit, evenly spread over the video
+    assert cache.crops.shape[0] == cache.uv.shape[0] == 4
+    nbytes = sum(getattr(cache, k).nbytes for k in ("crops", "uv", "mask", "mouth", "region", "vertices"))
+    assert nbytes <= 4.5 * per_frame
+
+
 def test_training_resumes_exactly_and_renders(footage, face_model, tmp_path):
     from renderer.render import FrameRenderer
 

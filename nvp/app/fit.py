@@ -218,14 +218,14 @@ def _train_renderer(builder: BundleBuilder, cfg: FitConfig, progress: bool) -> N
     """Cache the footage's crops once (``work/renderer_frames``), then train (resumable)."""
     from nvp.errors import FormatError
     from nvp.face_model import default_face_model
-    from renderer.data import FrameCache, build_cache
+    from renderer.data import CACHE_BUDGET_MB, FrameCache, build_cache
     from renderer.preset import get_preset
     from renderer.train import RendererTrainConfig, train_renderer
 
     preset = get_preset(cfg.preset)
     seq = TrackedSequence.load(builder.path("tracked"))
     frames_path = builder.work / "renderer_frames.json"
-    source = {"preset": cfg.preset, "frames": seq.num_frames}
+    source = {"preset": cfg.preset, "frames": seq.num_frames, "budget_mb": CACHE_BUDGET_MB}
     try:
         cache = FrameCache.load(frames_path, source)
     except FormatError:  # missing, damaged or stale: rebuild

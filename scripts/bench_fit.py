@@ -1,0 +1,105 @@
+"""Benchmark ``nvp fit`` on long high-resolution footage: peak memory and the time of each stage.
+
+    python scripts/bench_fit.py [--seconds 180] [--source CLIP.mp4] [--steps 50]
+
+A ``--seconds`` video (default 3 minutes) is made by looping ``--source`` (default: the 1920×1080
+``wav2lipgfpgan__kim_7s_raw.mp4`` of ../shared/data; video and audio packets copied, no re-encoding), and
+``nvp fit`` runs on it in a fresh process with ``--steps`` renderer steps (the memory of training does not
+grow with steps; the frame cache it trains from grows with the video). Prints the peak resident memory of
+that process (target: ≤ 4 GB), its wall time and the bundle's per-stage seconds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "video"
+
+
+def loop_media(src: Path, dst: Path, seconds: float) -> None:
+    """Concatenate copies of ``src``'s first video and audio streams (packets copied) up to ``seconds``."""
+    import av
+
+    with av.open(str(src)) as probe:
+        clip = float(probe.duration / 1e6)
+    with av.open(str(dst), "w") as out:
+        outs: dict[str, object] = {}
+        offsets: dict[str, int] = {}
+        for _ in range(int(seconds // clip) + 1):
+            with av.open(str(src)) as inp:
+                streams = inp.streams.video[:1] + inp.streams.audio[:1]
+                first: dict[str, int] = {}
+                ends: dict[str, int] = {}
+                for st in streams:
+                    if st.type not in outs:
+                        outs[st.type] = out.add_stream_from_template(st)
+                        offsets[st.type] = 0
+                for pkt in inp.demux(streams):
+                    if pkt.dts is None:
+                        continue
+                    kind = pkt.stream.type
+                    first.setdefault(kind, pkt.dts)  # may be negative (encoder delay)
+                    ends[kind] = max(ends.get(kind, pkt.dts), pkt.pts + (pkt.duration or 0))
+                    pkt.pts += offsets[kind]
+                    pkt.dts += offsets[kind]
+                    pkt.stream = outs[kind]
+                    out.mux(pkt)
+                for kind, end in ends.items():  # the next copy starts where this one ended
+                    offsets[kind] += end - first[kind]
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--seconds", type=float, default=180.0)
+    ap.add_argument("--source", type=Path, default=DATA / "wav2lipgfpgan__kim_7s_raw.mp4")
+    ap.add_argument("--steps", type=int, default=50)
+    ap.add_argument("--preset", default="cpu")
+    args = ap.parse_args(argv)
+    if not args.source.exists():
+        print(f"{args.source} not found: nothing to measure")
+        return 0
+    print(f"# bench_fit ({platform.machine()}, {os.cpu_count()} CPUs, load {os.getloadavg()[0]:.2f})")
+    nvp = Path(sys.executable).parent / "nvp"
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        video = tmp / "long.mp4"
+        loop_media(args.source, video, args.seconds)
+        cmd = [str(nvp), "--quiet", "fit", str(video), "-o", str(tmp / "person")]
+        cmd += ["--steps", str(args.steps), "--preset", args.preset]
+        t0 = time.perf_counter()
+        proc = subprocess.run(cmd, capture_output=True, text=True)
+        wall = time.perf_counter() - t0
+        peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
+        if proc.returncode != 0:
+            print(proc.stderr.strip()[-2000:])
+            return 1
+        manifest = json.loads((tmp / "person" / "bundle.json").read_text())
+    m = {
+        "seconds": args.seconds,
+        "steps": args.steps,
+        "preset": args.preset,
+        "wall_s": wall,
+        "peak_rss_mb": peak,
+    }
+    m["stages_s"] = {k: v.get("seconds") for k, v in manifest["stages"].items()}
+    print(
+        f"source {args.source.name} looped to {args.seconds:.0f} s; "
+        f"nvp fit --steps {args.steps} --preset {args.preset}"
+    )
+    print(f"wall {wall:.0f} s, peak RSS {peak:.0f} MB (target ≤ 4096 MB)")
+    print("stages (s): " + ", ".join(f"{k} {v}" for k, v in m["stages_s"].items()))
+    print("BENCH_JSON " + json.dumps(m))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
