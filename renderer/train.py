@@ -19,6 +19,7 @@ import torch
 from tqdm import tqdm
 
 from nvp.errors import FormatError
+from nvp.threads import ThreadGovernor
 from renderer.adversarial import critic_loss, generator_loss
 from renderer.data import FrameCache, Rasterizer, blank_face, moved_source
 from renderer.networks import count_parameters, make_renderer, save_renderer
@@ -259,7 +260,10 @@ def train_renderer(
     )
     running: list[float] = []
     t_last = time.perf_counter()
+    governor = ThreadGovernor() if str(device) == "cpu" else None  # threads follow the free cores
     while step < steps and (cfg.budget_s is None or elapsed < cfg.budget_s):
+        if governor is not None:
+            governor.update()
         net.train()
         progress = step / steps if cfg.budget_s is None else max(step / steps, elapsed / cfg.budget_s)
         for group in opt.param_groups:

@@ -93,6 +93,8 @@ def main(argv: list[str] | None = None) -> int:
                 mouth=np.zeros((8, s, s), bool),
                 region=np.ones((8, s, s), bool),
                 boxes=np.zeros((8, 3), np.float32),
+                vertices=verts[np.arange(8) % t].astype(np.float32),
+                camera=np.array([seq.focal, *seq.center], np.float32),
             )
             steps = 2 if p.dilated else args.steps
             train_renderer(

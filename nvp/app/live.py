@@ -184,7 +184,6 @@ def live(
         if output is not None
         else _NoWriter() as vw,
     ):
-
         governor = ThreadGovernor() if str(device) == "cpu" else None
 
         def emit(expressions: np.ndarray) -> None:
