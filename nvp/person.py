@@ -509,6 +509,7 @@ def speech_features(
     if style.opening is None:
         return speaker_normalized(extract_features(audio, sample_rate, kind=style.feature_kind)), None
     if style.feature_kind == "phonemes":
-        return recogniser_features(audio, sample_rate)
+        feats, phonetic = recogniser_features(audio, sample_rate)
+        return speaker_normalized(feats), phonetic
     feats = speaker_normalized(extract_features(audio, sample_rate, kind=style.feature_kind))
     return feats, extract_features(audio, sample_rate, kind="phonetic")
