@@ -336,6 +336,26 @@ def test_predict_exports_a_gltf_animation_that_reads_back_and_renders(bundle, tm
     assert_one_line_error(nvp("predict", wav, "--style", bundle), "--export")
 
 
+def test_a_person_fitted_before_the_opening_model_still_dubs_and_says_so(bundle, monkeypatch, caplog):
+    import dataclasses
+    import logging
+
+    from nvp.app import dub as dub_module
+    from nvp.bundle import PersonBundle
+    from nvp.person import PersonStyle
+
+    load = PersonStyle.load
+    monkeypatch.setattr(PersonStyle, "load", lambda path: dataclasses.replace(load(path), opening=None))
+    with caplog.at_level(logging.WARNING):
+        person = dub_module.load_person(PersonBundle.load(bundle))
+    assert person.style.opening is None and "mouth-opening model" in caplog.text
+    caplog.clear()
+    monkeypatch.setattr(PersonStyle, "load", load)
+    with caplog.at_level(logging.WARNING):
+        assert dub_module.load_person(PersonBundle.load(bundle)).style.opening is not None
+    assert "mouth-opening" not in caplog.text
+
+
 def test_expression_stream_is_causal_and_follows_whole_file_prediction(bundle):
     from nvp.audio2exp import default_audio2exp
     from nvp.face_model import default_face_model

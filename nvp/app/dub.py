@@ -8,6 +8,7 @@ audio, marked as synthetic.
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,6 +25,8 @@ from nvp.tracked import TrackedSequence
 if TYPE_CHECKING:
     from nvp.audio2exp import Audio2ExpressionNet
     from nvp.person import PersonStyle
+
+log = logging.getLogger(__name__)
 
 
 def dubbed_vertices(
@@ -83,6 +86,11 @@ def load_person(bundle: PersonBundle, style: str | Path | None = None) -> Person
 
     own = PersonStyle.load(bundle.path("style"))
     chosen = own if style is None else transferred_style(own, load_style(style))
+    if chosen.opening is None and chosen.feature_kind == "phonemes":
+        log.warning(
+            "%s was fitted before nvp's mouth-opening model; a new nvp fit (into another folder) adds it",
+            bundle.root,
+        )
     net, manifest = default_audio2exp(chosen.feature_kind)
     if manifest["sha256"] != chosen.audio2exp_sha256:
         raise NvpError(f"{bundle.root} was made with another Audio2ExpressionNet; run nvp fit again")
