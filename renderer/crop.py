@@ -126,15 +126,36 @@ def paste(
 
     ``with_weight``: also return the ``(H, W)`` blend weight of the crop in the frame (0 = footage kept).
     """
+    out = frame.clone()
+    full_weight = torch.zeros(frame.shape[1:])
+    pasted = paste_region(frame, crop, box, weight, detail, moved, paint)
+    if pasted is not None:
+        blended, a, (rows, cols) = pasted
+        out[:, rows, cols] = blended
+        full_weight[rows, cols] = a
+    return (out, full_weight) if with_weight else out
+
+
+def paste_region(
+    frame: torch.Tensor,
+    crop: torch.Tensor,
+    box: np.ndarray,
+    weight: torch.Tensor,
+    detail: tuple[torch.Tensor, torch.Tensor] | None = None,
+    moved: tuple[torch.Tensor, torch.Tensor, np.ndarray, torch.Tensor, torch.Tensor] | None = None,
+    paint: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor, tuple[slice, slice]] | None:
+    """:func:`paste` for the frame pixels under the box only: the blended pixels ``(C, h, w)``, their blend
+    weight ``(h, w)`` and the ``(rows, columns)`` slices of the frame they replace; None when the box lies
+    outside the frame. The rest of the frame is unchanged, so a caller holding the frame as uint8 need not
+    convert all of it."""
     _, h, w = frame.shape
     s = crop.shape[-1]
     cx, cy, side = (float(v) for v in box)
     x0, x1 = max(int(np.floor(cx - side / 2)), 0), min(int(np.ceil(cx + side / 2)), w)
     y0, y1 = max(int(np.floor(cy - side / 2)), 0), min(int(np.ceil(cy + side / 2)), h)
-    out = frame.clone()
-    full_weight = torch.zeros(h, w)
     if x1 <= x0 or y1 <= y0:
-        return (out, full_weight) if with_weight else out
+        return None
     # frame pixel centres of the region, in normalised crop coordinates
     xs = ((torch.arange(x0, x1, dtype=torch.float32) + 0.5 - cx) / side) * 2
     ys = ((torch.arange(y0, y1, dtype=torch.float32) + 0.5 - cy) / side) * 2
@@ -163,8 +184,4 @@ def paste(
         crop_pos = (pos - torch.tensor([sx - sside / 2, sy - sside / 2])) * (s / sside)
         fine = sample_pixels(source, pos) - sample_pixels(source_crop, crop_pos)
         blended = blended + a * strength * fine
-    out[:, y0:y1, x0:x1] = blended
-    if with_weight:
-        full_weight[y0:y1, x0:x1] = a[0]
-        return out, full_weight
-    return out
+    return blended, a[0], (slice(y0, y1), slice(x0, x1))

@@ -10,7 +10,7 @@ import torch
 
 from nvp.face_model import FaceModel
 from nvp.tracked import TrackedSequence
-from renderer.crop import cut, feather, paste, region_weight
+from renderer.crop import cut, feather, paste_region, region_weight
 from renderer.data import (
     FrameGeometry,
     Rasterizer,
@@ -120,7 +120,7 @@ class FrameRenderer:
         # it nothing of the footage's own mouth and chin shows through
         paint = face_region((lower > LOWER_FACE).float(), self.preset.region_grow) * region
         weight = self.weight * region_weight(paint)
-        out, painted = paste(
+        pasted = paste_region(
             img,
             final[0].cpu() * 255,
             box,
@@ -128,10 +128,14 @@ class FrameRenderer:
             detail=(crop[0] * 255, 1 - paint),
             moved=moved if self.detail else None,
             paint=paint,
-            with_weight=True,
         )
-        out = out.clamp(0, 255).round().byte().permute(1, 2, 0).numpy()
-        return (out, painted.numpy()) if with_weight else out
+        # only the pixels under the crop box change: the rest of the uint8 frame is copied as it is
+        out, painted = frame.copy(), np.zeros(frame.shape[:2], np.float32)
+        if pasted is not None:
+            pixels, alpha, (rows, cols) = pasted
+            out[rows, cols] = pixels.clamp(0, 255).round().byte().permute(1, 2, 0).numpy()
+            painted[rows, cols] = alpha.numpy()
+        return (out, painted) if with_weight else out
 
     def _moved(
         self,

@@ -71,6 +71,23 @@ def test_cut_and_paste_round_trip():
     torch.testing.assert_close(other[:, :20], frame[:, :20])  # outside the box untouched
 
 
+def test_paste_region_is_the_frame_paste_under_the_box():
+    from renderer.crop import paste_region
+
+    frame = torch.rand(3, 120, 160) * 255
+    crop = torch.rand(3, 64, 64) * 255
+    for box in (np.array([70.0, 60.0, 64.0]), np.array([150.0, 10.0, 80.0])):  # inside / over the corner
+        full, weight = paste(frame, crop, box, feather(64), with_weight=True)
+        pixels, alpha, (rows, cols) = paste_region(frame, crop, box, feather(64))
+        torch.testing.assert_close(full[:, rows, cols], pixels)
+        torch.testing.assert_close(weight[rows, cols], alpha)
+        outside = torch.ones(120, 160, dtype=torch.bool)
+        outside[rows, cols] = False
+        assert torch.equal(full[:, outside], frame[:, outside]) and not weight[outside].any()
+    assert paste_region(frame, crop, np.array([500.0, 500.0, 64.0]), feather(64)) is None
+    assert torch.equal(paste(frame, crop, np.array([500.0, 500.0, 64.0]), feather(64)), frame)
+
+
 def test_paste_keeps_the_footage_detail_outside_the_replaced_region():
     torch.manual_seed(0)
     frame = torch.rand(3, 200, 200) * 255  # fine detail that a 48 px crop of a 160 px box cannot hold
