@@ -29,7 +29,7 @@ STAGES = {
     "network": ("renderer/networks.py", "forward"),
     "detail transfer": ("renderer/render.py", "_moved"),
     "crop": ("renderer/crop.py", "cut"),
-    "paste": ("renderer/crop.py", "paste"),
+    "paste": ("renderer/crop.py", "paste_region"),
     "encode": ("nvp/media.py", "write"),
     "audio → expressions": ("nvp/person.py", "predict_expressions"),
 }
