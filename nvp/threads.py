@@ -91,13 +91,13 @@ class ThreadGovernor:
     def _sample(self) -> tuple[float | None, float, float]:
         return _machine_busy_s(), _own_s(), time.monotonic()
 
-    def update(self, force: bool = False) -> int:
-        """Re-evaluate when ``interval_s`` has passed (or ``force``); returns the thread count in use."""
+    def update(self) -> int:
+        """Look at the load again when its time has come; returns the thread count in use."""
         if self.fixed or self._last[0] is None:
             return self.threads
         now = self._sample()
         elapsed = now[2] - self._last[2]
-        if elapsed < self._wait and not force:
+        if elapsed < self._wait:
             return self.threads
         self._wait = self.interval_s
         if elapsed > 0 and now[0] is not None:

@@ -6,7 +6,8 @@ Per video of the chosen split (default: test, people never used for training or 
 person's style is made from the first 80 % of the frames exactly as ``nvp fit`` makes it
 (``nvp.person.style_from_sample`` with the voice activity of that part), the last 20 % is predicted from
 audio as ``nvp dub`` predicts it (``nvp.person.apply_style``: network, person map, closure head, voice
-activity of ``nvp.vad.voice_activity``), and the tracked mesh's inner-lip gap of the prediction is compared
+activity of ``nvp.vad.voice_activity``; the opening model ``nvp.opening`` blended in with
+``--opening-weight``, 0 for none), and the tracked mesh's inner-lip gap of the prediction is compared
 with the tracked gap of the real frames (expression level; nothing is rendered). The held-out audio is used
 clean and with white noise mixed in at 10 and 0 dB SNR (noise level relative to the clean held-out speech's
 active level); features and voice activity then see the noisy audio, while the truth (real mouth, bilabial
@@ -293,7 +294,8 @@ def main(argv: list[str] | None = None) -> int:
     text = (
         f"## Lip sync on the {args.set} split: {len(names)} videos, {people} people, "
         f"{sum(r['test_frames'] for r in reals)} held-out frames\n\n"
-        "Network: " + args.net.name + f" (sha256 {manifest['sha256'][:12]}). Person map on the first 80 %, "
+        "Network: " + args.net.name + f" (sha256 {manifest['sha256'][:12]}); opening model "
+        f"{args.opening.name} at weight {args.opening_weight}. Person map on the first 80 %, "
         "last 20 % predicted. Rates in parentheses: the real video's (the target).\n\n"
         + markdown_table(overall, cols)
         + "\n### Per language (clean audio)\n\n"
