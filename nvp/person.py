@@ -361,6 +361,8 @@ def style_from_sample(
             model, identity, expression, predicted, z, opening.sha256, opening_weight, max_gain
         )
     info = {"video": sample.name, "frames": int(ok.sum()), "ridge": ridge, "rest": kind, "range_gain": gain}
+    if opening is not None:
+        info["opening"] = "calibrated" if calibration is not None else "not used: no opening motion"
     return PersonStyle(pmap, rest, manifest["feature_kind"], manifest["sha256"], info, closed, calibration)
 
 

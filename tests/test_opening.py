@@ -160,6 +160,7 @@ def test_style_from_sample_calibrates_the_opening_when_given_phonetic_windows(fa
     with_phonetic = dataclasses.replace(s, phonetic=s.windows)
     style = style_from_sample(net, manifest, with_phonetic, face_model, opening=opening)
     assert style.opening is not None and style.opening.model_sha256 == "b" * 64
+    assert style.info["opening"] == "calibrated"
     assert (
         style_from_sample(net, manifest, with_phonetic, face_model, opening=opening, opening_weight=0).opening
         is None

@@ -345,7 +345,13 @@ def test_a_person_fitted_before_the_opening_model_still_dubs_and_says_so(bundle,
     from nvp.person import PersonStyle
 
     load = PersonStyle.load
-    monkeypatch.setattr(PersonStyle, "load", lambda path: dataclasses.replace(load(path), opening=None))
+
+    def older(path):
+        style = load(path)
+        info = {k: v for k, v in style.info.items() if k != "opening"}
+        return dataclasses.replace(style, opening=None, info=info)
+
+    monkeypatch.setattr(PersonStyle, "load", older)
     with caplog.at_level(logging.WARNING):
         person = dub_module.load_person(PersonBundle.load(bundle))
     assert person.style.opening is None and "mouth-opening model" in caplog.text
