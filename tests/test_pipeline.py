@@ -38,6 +38,7 @@ def test_fit_writes_a_complete_bundle(bundle):
     assert not (bundle / "renderer" / "checkpoint.pt").exists()
     assert not bundle.with_name("person.partial").exists()
     proc = nvp("info", bundle)
+    assert "mouth-opening model: calibrated" in proc.stdout
     assert proc.returncode == 0 and "renderer preset: cpu" in proc.stdout, proc.stderr
 
 

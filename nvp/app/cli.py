@@ -424,6 +424,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
 def _cmd_info(args: argparse.Namespace) -> int:
     from nvp.bundle import PersonBundle
+    from nvp.person import PersonStyle
 
     b = PersonBundle.load(args.person)
     m = b.manifest
@@ -434,6 +435,10 @@ def _cmd_info(args: argparse.Namespace) -> int:
         f"{t['frames']} frames ({t['duration_s']:.1f} s)"
     )
     print(f"  speech features: {m['feature_kind']}; renderer preset: {m['preset']}")
+    style = PersonStyle.load(b.path("style"))
+    opening = style.info.get("opening", "none (fitted before nvp's opening model)")
+    opening = "calibrated" if style.opening else opening
+    print(f"  talking style: rest mouth from {style.info.get('rest', '?')}; mouth-opening model: {opening}")
     for name, facts in m["stages"].items():
         extra = ", ".join(f"{k} {v}" for k, v in facts.items() if k != "seconds")
         print(f"  {name}: {facts.get('seconds', 0):.1f} s" + (f" ({extra})" if extra else ""))

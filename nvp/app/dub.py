@@ -86,7 +86,7 @@ def load_person(bundle: PersonBundle, style: str | Path | None = None) -> Person
 
     own = PersonStyle.load(bundle.path("style"))
     chosen = own if style is None else transferred_style(own, load_style(style))
-    if chosen.feature_kind == "phonemes" and "opening" not in chosen.info:  # made before the opening model
+    if chosen.feature_kind == "phonemes" and chosen.opening is None and "opening" not in chosen.info:
         log.warning(
             "%s was fitted before nvp's mouth-opening model; a new nvp fit (into another folder) adds it",
             bundle.root,
