@@ -49,9 +49,9 @@ def train_opening(
     videos), write ``out`` (.npz + .json) and return it with its summary."""
     if not train_set:
         raise NvpError("no training videos")
-    kinds = {s.windows.shape[2] for s in train_set + val_set}
-    if len(kinds) != 1:
-        raise NvpError(f"training and validation windows differ in feature width: {sorted(kinds)}")
+    widths = {s.windows.shape[2] for s in train_set + val_set}
+    if len(widths) != 1:
+        raise NvpError(f"training and validation windows differ in feature width: {sorted(widths)}")
     targets = [opening_targets(s, model) for s in train_set]
     fits = {}
     for ridge in ridges:
