@@ -25,8 +25,12 @@ FIRST_S = 0.5
 """Seconds from the start to the first look."""
 
 
+_TORCH_DEFAULT: int | None = None
+"""PyTorch's own thread count when the first governor was made (its physical cores, usually)."""
+
+
 def available_cores() -> int:
-    """Cores this process may run on."""
+    """Cores this process may run on (logical ones)."""
     try:
         return len(os.sched_getaffinity(0))
     except (AttributeError, OSError):
@@ -71,7 +75,8 @@ class ThreadGovernor:
 
     Call :meth:`update` often (every frame); it looks at the load ``first_s`` after it was made, then
     every ``interval_s``, and returns the thread count in use. ``threads``: a fixed count (no governing);
-    by default the environment's (:func:`fixed_threads`), else governed, starting with every core.
+    by default the environment's (:func:`fixed_threads`), else governed, starting with every core (at most
+    PyTorch's own default count).
     """
 
     def __init__(
@@ -79,9 +84,13 @@ class ThreadGovernor:
     ) -> None:
         import torch
 
+        global _TORCH_DEFAULT
+        if _TORCH_DEFAULT is None:
+            _TORCH_DEFAULT = torch.get_num_threads()
         self._torch = torch
         self.fixed = threads or fixed_threads()
-        self.cores = available_cores()
+        # never more than PyTorch would use on its own (hyper-threads do not speed these networks up)
+        self.cores = min(available_cores(), _TORCH_DEFAULT)
         self.interval_s = interval_s
         self._wait = first_s
         self._last = self._sample()

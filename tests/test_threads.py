@@ -25,6 +25,7 @@ def clock(monkeypatch):
     monkeypatch.setattr(threads, "_own_s", lambda: state["own"])
     monkeypatch.setattr(threads.time, "monotonic", lambda: state["now"])
     monkeypatch.setattr(threads, "available_cores", lambda: 2)
+    monkeypatch.setattr(threads, "_TORCH_DEFAULT", 2)
     monkeypatch.delenv("NVP_THREADS", raising=False)
     monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     before = torch.get_num_threads()
@@ -62,3 +63,9 @@ def test_a_fixed_count_is_kept(clock, monkeypatch):
     _run(clock, 5.0, 1.0, 0.0)
     assert g.update() == 1
     assert ThreadGovernor(threads=2).threads == 2
+
+
+def test_never_more_threads_than_pytorch_would_use(clock, monkeypatch):
+    monkeypatch.setattr(threads, "available_cores", lambda: 8)  # 8 logical cores, PyTorch's default 2
+    g = ThreadGovernor()
+    assert g.cores == 2 and g.threads == 2
