@@ -99,12 +99,39 @@ def standardized_opening(gap: np.ndarray, valid: np.ndarray) -> np.ndarray:
     return ((g - g[valid].mean()) / sd).astype(np.float32)
 
 
-def fit_opening_model(
-    windows: Iterable[np.ndarray], targets: Iterable[np.ndarray], ridge: float, window_step: int = WINDOW_STEP
-) -> OpeningModel:
-    """Ridge regression of ``targets`` (per video ``(T,)`` standardised openings; NaN frames are left out)
-    on their feature ``windows`` (per video ``(T, W, D)``), with inputs standardised over all frames and
-    ``ridge`` in units of frames; accumulated video by video, so the corpus need not be in memory."""
+@dataclass(frozen=True)
+class NormalEquations:
+    """Sums over a corpus that ridge fits of any strength solve from (:func:`normal_equations`)."""
+
+    xtx: np.ndarray
+    xty: np.ndarray
+    xs: np.ndarray
+    ys: float
+    n: int
+    dim: int
+    window_step: int
+
+    def solve(self, ridge: float) -> OpeningModel:
+        """The ridge regression with inputs standardised over all frames (``ridge`` in units of frames)."""
+        mean = self.xs / self.n
+        scatter = self.xtx - self.n * np.outer(mean, mean)
+        std = np.sqrt(np.maximum(np.diag(scatter) / self.n, 0.0)) + 1e-6
+        # normal equations of the standardised inputs (x - mean) / std against the centred targets
+        a = scatter / np.outer(std, std) + ridge * np.eye(len(std))
+        beta = np.linalg.solve(a, (self.xty - mean * self.ys) / std) / std
+        return OpeningModel(
+            weight=beta.reshape(-1, self.dim).astype(np.float32),
+            bias=float(self.ys / self.n - beta @ mean),
+            window_step=self.window_step,
+        )
+
+
+def normal_equations(
+    windows: Iterable[np.ndarray], targets: Iterable[np.ndarray], window_step: int = WINDOW_STEP
+) -> NormalEquations:
+    """Sums for regressing ``targets`` (per video ``(T,)`` standardised openings; NaN frames are left out) on
+    their feature ``windows`` (per video ``(T, W, D)``), accumulated video by video, so the corpus need not
+    be in memory."""
     xtx = xty = xs = None
     n, ys, dim = 0, 0.0, 0
     for w, y in zip(windows, targets, strict=True):
@@ -121,14 +148,12 @@ def fit_opening_model(
         n, ys = n + len(t), ys + t.sum()
     if xtx is None or n < 2:
         raise ValueError("no frames to fit an opening model on")
-    mean = xs / n
-    scatter = xtx - n * np.outer(mean, mean)
-    std = np.sqrt(np.maximum(np.diag(scatter) / n, 0.0)) + 1e-6
-    # normal equations of the standardised inputs (x - mean) / std against the centred targets
-    beta = np.linalg.solve(scatter / np.outer(std, std) + ridge * np.eye(len(std)), (xty - mean * ys) / std)
-    beta /= std
-    return OpeningModel(
-        weight=beta.reshape(-1, dim).astype(np.float32),
-        bias=float(ys / n - beta @ mean),
-        window_step=window_step,
-    )
+    return NormalEquations(xtx, xty, xs, ys, n, dim, window_step)
+
+
+def fit_opening_model(
+    windows: Iterable[np.ndarray], targets: Iterable[np.ndarray], ridge: float, window_step: int = WINDOW_STEP
+) -> OpeningModel:
+    """Ridge regression of ``targets`` on ``windows`` (see :func:`normal_equations`) with inputs
+    standardised over all frames and ``ridge`` in units of frames."""
+    return normal_equations(windows, targets, window_step).solve(ridge)

@@ -22,39 +22,8 @@ import tempfile
 import time
 from pathlib import Path
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "video"
-
-
-def loop_media(src: Path, dst: Path, seconds: float) -> None:
-    """Concatenate copies of ``src``'s first video and audio streams (packets copied) up to ``seconds``."""
-    import av
-
-    with av.open(str(src)) as probe:
-        clip = float(probe.duration / 1e6)
-    with av.open(str(dst), "w") as out:
-        outs: dict[str, object] = {}
-        offsets: dict[str, int] = {}
-        for _ in range(int(seconds // clip) + 1):
-            with av.open(str(src)) as inp:
-                streams = inp.streams.video[:1] + inp.streams.audio[:1]
-                first: dict[str, int] = {}
-                ends: dict[str, int] = {}
-                for st in streams:
-                    if st.type not in outs:
-                        outs[st.type] = out.add_stream_from_template(st)
-                        offsets[st.type] = 0
-                for pkt in inp.demux(streams):
-                    if pkt.dts is None:
-                        continue
-                    kind = pkt.stream.type
-                    first.setdefault(kind, pkt.dts)  # may be negative (encoder delay)
-                    ends[kind] = max(ends.get(kind, pkt.dts), pkt.pts + (pkt.duration or 0))
-                    pkt.pts += offsets[kind]
-                    pkt.dts += offsets[kind]
-                    pkt.stream = outs[kind]
-                    out.mux(pkt)
-                for kind, end in ends.items():  # the next copy starts where this one ended
-                    offsets[kind] += end - first[kind]
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_tracking import DATA, loop_media  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -26,32 +26,37 @@ from pathlib import Path
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "video"
 
 
-def loop_video(src: Path, dst: Path, seconds: float) -> None:
-    """Concatenate copies of ``src``'s video stream (packets copied, no re-encoding) up to ``seconds``."""
+def loop_media(src: Path, dst: Path, seconds: float, audio: bool = True) -> None:
+    """Concatenate copies of ``src``'s first video stream (and audio stream, with ``audio``; packets copied,
+    no re-encoding) up to ``seconds``."""
     import av
 
     with av.open(str(src)) as probe:
-        vs = probe.streams.video[0]
-        clip = float(vs.duration * vs.time_base) if vs.duration else float(probe.duration / 1e6)
-    n = int(seconds // clip) + 1
+        clip = float(probe.duration / 1e6)
     with av.open(str(dst), "w") as out:
-        ostream = None
-        offset = 0
-        for _ in range(n):
+        outs: dict[str, object] = {}
+        offsets: dict[str, int] = {}
+        for _ in range(int(seconds // clip) + 1):
             with av.open(str(src)) as inp:
-                ist = inp.streams.video[0]
-                if ostream is None:
-                    ostream = out.add_stream_from_template(ist)
-                last = 0
-                for pkt in inp.demux(ist):
+                streams = [*inp.streams.video[:1], *(inp.streams.audio[:1] if audio else ())]
+                first: dict[str, int] = {}
+                ends: dict[str, int] = {}
+                for st in streams:
+                    if st.type not in outs:
+                        outs[st.type] = out.add_stream_from_template(st)
+                        offsets[st.type] = 0
+                for pkt in inp.demux(streams):
                     if pkt.dts is None:
                         continue
-                    pkt.pts += offset
-                    pkt.dts += offset
-                    last = max(last, pkt.pts + (pkt.duration or 0))
-                    pkt.stream = ostream
+                    kind = pkt.stream.type
+                    first.setdefault(kind, pkt.dts)  # may be negative (encoder delay)
+                    ends[kind] = max(ends.get(kind, pkt.dts), pkt.pts + (pkt.duration or 0))
+                    pkt.pts += offsets[kind]
+                    pkt.dts += offsets[kind]
+                    pkt.stream = outs[kind]
                     out.mux(pkt)
-                offset = last
+                for kind, end in ends.items():  # the next copy starts where this one ended
+                    offsets[kind] += end - first[kind]
 
 
 def make_clip(size: int, seconds: float, path: Path) -> Path:
@@ -121,7 +126,7 @@ def main(argv: list[str] | None = None) -> int:
         src1080 = DATA / "wav2lipgfpgan__kim_7s_raw.mp4"
         long = tmp / "long1080.mp4"
         if src1080.exists():
-            loop_video(src1080, long, args.seconds_1080p)
+            loop_media(src1080, long, args.seconds_1080p, audio=False)
         else:
             print(f"{DATA} not found: using nvp's demo clip rendered at 1080x1080")
             make_clip(1080, args.seconds_1080p, long)

@@ -205,3 +205,18 @@ def test_train_opening_command(demo_clip, tmp_path):
     m = json.loads((tmp_path / "op.json").read_text())
     assert m["info"]["split"]["train"] == ["a.mp4"] and m["info"]["feature_kind"] == "phonetic"
     assert OpeningModel.load(tmp_path / "op.json").weight.shape == (8, 144)
+
+
+def test_one_recogniser_pass_caches_both_feature_kinds(demo_clip, tmp_path, monkeypatch):
+    from nvp import audio_features
+    from nvp.app.corpus import features_cached
+
+    calls = []
+    real = audio_features.recogniser_features
+    monkeypatch.setattr(
+        audio_features, "recogniser_features", lambda *a, **k: calls.append(1) or real(*a, **k)
+    )
+    post = features_cached(demo_clip.path, tmp_path, "phonemes", 25.0, 30)
+    phon = features_cached(demo_clip.path, tmp_path, "phonetic", 25.0, 30)
+    assert len(calls) == 1 and post.shape == (30, 16, 191) and phon.shape == (30, 16, 144)
+    assert len(list((tmp_path / "features").glob("*.json"))) == 2

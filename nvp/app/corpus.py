@@ -48,27 +48,36 @@ def features_cached(
 ) -> np.ndarray:
     """Feature windows ``(T, W, D)`` of the video's audio track — with white noise mixed in at ``snr_db``
     when given (:func:`nvp.vad.with_white_noise`, seeded by the file's content) — kept in
-    ``cache/features`` (an artifact: written atomically; a damaged entry is recomputed)."""
-    from nvp.audio_features import SAMPLE_RATE, extract_features, speaker_normalized
+    ``cache/features`` (an artifact: written atomically; a damaged entry is recomputed). ``"phonemes"``
+    and ``"phonetic"`` of the clean audio come from one recogniser pass, so computing either caches both."""
+    from nvp.audio_features import SAMPLE_RATE, extract_features, recogniser_features, speaker_normalized
     from nvp.media import read_audio
     from nvp.vad import with_white_noise
     from nvp.windows import frame_windows
 
     key = cache_key(video)
     noise = "" if snr_db is None else f"_snr{snr_db:g}"
-    path = cache / "features" / f"{key}_{kind}_{fps:.3f}_{num_frames}_sn{noise}.json"
+
+    def path(k: str) -> Path:
+        return cache / "features" / f"{key}_{k}_{fps:.3f}_{num_frames}_sn{noise}.json"
+
     try:
-        return load_artifact(path, "feature_windows", 1).arrays["windows"]
+        return load_artifact(path(kind), "feature_windows", 1).arrays["windows"]
     except (FormatError, KeyError):
         pass
     audio = read_audio(video, SAMPLE_RATE)
     if snr_db is not None:
         audio = with_white_noise(audio, SAMPLE_RATE, snr_db, int(key[-16:], 16) % 2**32)
-    feats = speaker_normalized(extract_features(audio, SAMPLE_RATE, kind=kind))
-    windows = frame_windows(feats, fps, num_frames=num_frames).astype(np.float32)
-    fields = {"video": video.name, "kind": kind, "snr_db": snr_db}
-    save_artifact(path, "feature_windows", 1, {"windows": windows}, fields)
-    return windows
+    if kind in ("phonemes", "phonetic") and snr_db is None:  # noisy copies are only trained on
+        made = {f.kind: f for f in recogniser_features(audio, SAMPLE_RATE)}
+    else:
+        made = {kind: extract_features(audio, SAMPLE_RATE, kind=kind)}
+    for k, feats in made.items():
+        windows = frame_windows(speaker_normalized(feats), fps, num_frames=num_frames).astype(np.float32)
+        fields = {"video": video.name, "kind": k, "snr_db": snr_db}
+        save_artifact(path(k), "feature_windows", 1, {"windows": windows}, fields)
+        made[k] = windows
+    return made[kind]
 
 
 def load_sample(

@@ -9,7 +9,7 @@ import numpy as np
 
 from nvp.errors import NvpError
 from nvp.face_model import FaceModel
-from nvp.opening import FEATURE_KIND, OpeningModel, fit_opening_model, standardized_opening
+from nvp.opening import FEATURE_KIND, OpeningModel, normal_equations, standardized_opening
 from nvp.person import VideoSample
 
 RIDGES = (1e3, 3e3, 1e4, 3e4, 1e5)
@@ -52,10 +52,10 @@ def train_opening(
     widths = {s.windows.shape[2] for s in train_set + val_set}
     if len(widths) != 1:
         raise NvpError(f"training and validation windows differ in feature width: {sorted(widths)}")
-    targets = [opening_targets(s, model) for s in train_set]
+    sums = normal_equations((s.windows for s in train_set), [opening_targets(s, model) for s in train_set])
     fits = {}
     for ridge in ridges:
-        m = fit_opening_model((s.windows for s in train_set), targets, ridge)
+        m = sums.solve(ridge)
         per_video = correlations(m, val_set, model)
         fits[ridge] = (m, per_video, float(np.mean(list(per_video.values()))) if per_video else 0.0)
     ridge = max(fits, key=lambda r: (fits[r][2], r))
