@@ -7,9 +7,11 @@ background (6 channels) and outputs the final image, inpainting the seam.
 
 from __future__ import annotations
 
+import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -123,6 +125,9 @@ class NeuralRenderer(nn.Module):
     moved onto the rendered surface and their validity (:func:`renderer.data.moved_source`); it outputs
     colour plus a per-pixel weight of the moved pixels, so it can keep them exactly where they are right
     and paint where they are missing or wrong (the mouth interior, disocclusions).
+
+    ``texture`` (forward): another person's texture to sample instead of the renderer's own (training on
+    many people shares the networks, each person has a texture).
     """
 
     def __init__(
@@ -149,8 +154,9 @@ class NeuralRenderer(nn.Module):
         background: torch.Tensor,
         region: torch.Tensor,
         source: torch.Tensor | None = None,
+        texture: NeuralTexture | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        feats = self.texture(uv, mask)
+        feats = (texture or self.texture)(uv, mask)
         if self.source_input:
             if source is None:
                 raise ValueError("this renderer needs the moved source pixels (source_input)")
@@ -194,11 +200,20 @@ def make_renderer(preset: Preset, region_input: bool = True) -> NeuralRenderer:
     )
 
 
-def save_renderer(net: NeuralRenderer, out_dir: Path, preset: Preset, info: dict) -> Path:
-    """Write ``renderer.npz`` (weights) and ``renderer.json`` (format, preset, provenance) atomically."""
+def save_renderer(net: NeuralRenderer, out_dir: Path, preset: Preset, info: dict, half: bool = False) -> Path:
+    """Write ``renderer.npz`` (weights) and ``renderer.json`` (format, preset, provenance) atomically.
+
+    ``half``: store the weights as float16, compressed (a shipped starting point; loads as float32)."""
     arrays = {k: v.detach().cpu().numpy() for k, v in net.state_dict().items()}
+    if half:
+        arrays = {k: v.astype(np.float16) for k, v in arrays.items()}
     return save_artifact(
-        Path(out_dir) / "renderer", "renderer", FORMAT_VERSION, arrays, {"preset": asdict(preset), **info}
+        Path(out_dir) / "renderer",
+        "renderer",
+        FORMAT_VERSION,
+        arrays,
+        {"preset": asdict(preset), **info},
+        compress=half,
     )
 
 
@@ -209,7 +224,28 @@ def load_renderer(out_dir: Path, device: str = "cpu") -> tuple[NeuralRenderer, P
     try:
         preset = Preset(**{"region_grow": 0.06, "source_input": False, **m["preset"]})
         net = make_renderer(preset, region_input=m["version"] >= 5)
-        net.load_state_dict({k: torch.from_numpy(v) for k, v in art.arrays.items()})
+        net.load_state_dict({k: torch.from_numpy(v.astype(np.float32)) for k, v in art.arrays.items()})
     except (TypeError, KeyError, RuntimeError) as e:
         raise FormatError(f"cannot load renderer from {out_dir}: {e}") from e
     return net.to(device).eval(), preset, m
+
+
+GENERIC_DIR = Path(__file__).parent / "assets"
+"""Shipped generic renderers (``generic_<preset>/renderer.{json,npz}``): networks pre-trained on many
+people and their mean texture, the starting point of a person's renderer training."""
+
+
+def generic_renderer_dir(preset: Preset) -> Path | None:
+    """The shipped generic renderer trained for ``preset`` (same crop, networks and texture), or None."""
+    folder = GENERIC_DIR / f"generic_{preset.name}"
+    if not (folder / "renderer.json").exists():
+        return None
+    saved = json.loads((folder / "renderer.json").read_text())["preset"]
+    return folder if same_structure(Preset(**saved), preset) else None
+
+
+def same_structure(a: Preset, b: Preset) -> bool:
+    """Whether renderers of presets ``a`` and ``b`` have the same weights and inputs (a training of one can
+    start from the other's weights)."""
+    keys = ("crop", "base", "dilated", "texture_size", "region_grow", "source_input")
+    return all(getattr(a, k) == getattr(b, k) for k in keys)

@@ -7,22 +7,33 @@ frequencies (image minus its Gaussian blur) inside the face, which the other ter
 
 from __future__ import annotations
 
+import copy
 import json
 import logging
 import os
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
+from torch import nn
 from tqdm import tqdm
 
 from nvp.errors import FormatError
 from nvp.threads import ThreadGovernor
 from renderer.adversarial import critic_loss, generator_loss
 from renderer.data import FrameCache, Rasterizer, blank_face, moved_source
-from renderer.networks import count_parameters, make_renderer, save_renderer
+from renderer.networks import (
+    NeuralRenderer,
+    count_parameters,
+    generic_renderer_dir,
+    load_renderer,
+    make_renderer,
+    same_structure,
+    save_renderer,
+)
 from renderer.preset import Preset, get_preset
 
 log = logging.getLogger(__name__)
@@ -71,6 +82,10 @@ class RendererTrainConfig:
     """Steps between preview PNGs (ground truth | interior | final)."""
     seed: int = 0
     """Random seed (initial weights, batches)."""
+    init: str | None = "generic"
+    """Starting weights: ``"generic"`` = the renderer pre-trained on many people that ships for the preset
+    (:func:`renderer.networks.generic_renderer_dir`; from scratch when the preset has none), None = from
+    scratch, or a renderer folder (its networks and texture; the preset's structure must match)."""
 
 
 FIRST_PREVIEW = 100
@@ -78,8 +93,10 @@ FIRST_PREVIEW = 100
 
 
 def l1_masked(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """Mean absolute error over the pixels where ``mask`` ``(B, 1, H, W)`` is 1."""
-    return ((pred - target).abs() * mask).sum() / (mask.sum() * pred.shape[1]).clamp_min(1.0)
+    """Mean absolute error over the pixels where ``mask`` ``(B, 1, H, W)`` is 1, averaged over the crops
+    (each crop's own mean: a batch split over processes gives the same loss, see :func:`train_renderer`)."""
+    err = ((pred - target).abs() * mask).sum((1, 2, 3))
+    return (err / (mask.sum((1, 2, 3)) * pred.shape[1]).clamp_min(1.0)).mean()
 
 
 def high_pass(image: torch.Tensor) -> torch.Tensor:
@@ -142,14 +159,14 @@ def _preview(path: Path, target: torch.Tensor, interior: torch.Tensor, final: to
 
 
 class SourceSampler:
-    """The moved-source input of a training batch: for each target crop, another cache frame ``gap``
+    """The moved-source input of a training batch: for each target crop, another frame of its cache ``gap``
     seconds away (``cfg.source_gap_s``, assuming 25 fps) moved onto the target's surface."""
 
-    def __init__(self, cache: FrameCache, preset: Preset, gap_s: tuple[float, float]) -> None:
+    def __init__(self, preset: Preset, gap_s: tuple[float, float]) -> None:
         from nvp.face_model import default_face_model
 
         model = default_face_model()
-        self.cache, self.gap = cache, (round(gap_s[0] * 25), round(gap_s[1] * 25))
+        self.gap = (round(gap_s[0] * 25), round(gap_s[1] * 25))
         self.raster = Rasterizer(model, preset.crop, preset.region_grow)
         self.triangles = torch.from_numpy(model.triangles)
         self.movable = torch.from_numpy(~model.triangle_regions["mouth_interior"])
@@ -157,19 +174,19 @@ class SourceSampler:
     def close(self) -> None:
         self.raster.close()
 
-    def pick(self, i: int, rng: np.random.Generator) -> int:
-        d = np.abs(self.cache.frames - self.cache.frames[i])
+    def pick(self, cache: FrameCache, i: int, rng: np.random.Generator) -> int:
+        d = np.abs(cache.frames - cache.frames[i])
         ok = np.flatnonzero((d >= self.gap[0]) & (d <= self.gap[1]))
         if len(ok) == 0:
             ok = np.flatnonzero(d > 0) if len(d) > 1 else np.array([i])
         return int(rng.choice(ok))
 
-    def __call__(self, idx: np.ndarray, rng: np.random.Generator) -> torch.Tensor:
-        c = self.cache
+    def __call__(self, cache: FrameCache, idx: np.ndarray, rng: np.random.Generator) -> torch.Tensor:
+        c = cache
         focal, center = float(c.camera[0]), c.camera[1:]
         out = []
         for i in idx:
-            j = self.pick(int(i), rng)
+            j = self.pick(c, int(i), rng)
             geo = self.raster(c.vertices[i], focal, center, c.boxes[i])
             src = self.raster(c.vertices[j], focal, center, c.boxes[j])
             crop = torch.from_numpy(c.crops[j]).permute(2, 0, 1).float() / 255
@@ -180,49 +197,99 @@ class SourceSampler:
         return torch.stack(out)
 
 
+def initial_weights(net: NeuralRenderer, preset: Preset, init: str | None) -> str:
+    """Load ``init``'s weights (see :attr:`RendererTrainConfig.init`) into ``net``; returns what was loaded
+    (``"scratch"``, ``"generic:<sha256 prefix>"`` or the folder)."""
+    if init is None:
+        return "scratch"
+    folder = generic_renderer_dir(preset) if init == "generic" else Path(init)
+    if folder is None:
+        log.info("no generic renderer ships for preset %s: training from scratch", preset.name)
+        return "scratch"
+    start, start_preset, manifest = load_renderer(folder)
+    if not same_structure(start_preset, preset) or start.region_input != net.region_input:
+        raise FormatError(
+            f"{folder} holds a renderer of another structure (preset {start_preset.name}, crop "
+            f"{start_preset.crop}, base {start_preset.base}); it cannot start a {preset.name} training"
+        )
+    net.load_state_dict(start.state_dict())
+    return f"generic:{manifest.get('sha256', '')[:16]}" if init == "generic" else str(folder)
+
+
 def train_renderer(
-    cache: FrameCache,
+    caches: FrameCache | Sequence[FrameCache],
     cfg: RendererTrainConfig,
     out_dir: Path,
     device: str = "cpu",
     progress: bool = True,
     preset: Preset | None = None,
+    names: Sequence[str] | None = None,
+    group=None,
 ) -> dict:
-    """Train on ``cache``; resumable from ``out_dir/checkpoint.pt``. Writes ``renderer.{npz,json}``.
+    """Train on one person's frames, or pre-train on many; resumable from ``out_dir/checkpoint.pt``.
+    Writes ``renderer.{npz,json}``.
 
-    ``preset`` overrides ``cfg.preset`` (e.g. a shrunken preset in tests); the cache must match its crop.
+    ``caches``: one ``FrameCache`` (a person), or several (one per video: pre-training a generic renderer;
+    the networks are shared, each video has its own texture, every step draws its batch from one video
+    chosen at random, and the saved texture is the mean of theirs, the start of a new person's).
+    ``preset`` overrides ``cfg.preset`` (e.g. a shrunken preset in tests); the caches must match its crop.
+    ``names``: the videos' names (recorded in the manifest).
+
+    ``group``: this process's place among several training processes (``nvp.app.distributed.Group``,
+    under ``torchrun``; None: one process). Every process draws the same batches (they depend on the seed
+    and the step only) and computes its share of each; the gradients are averaged over the processes with
+    ``torch.distributed`` (every loss term is a mean over crops, so N processes follow the one-process run
+    up to float rounding). DistributedDataParallel itself is not used: a step updates one video's texture
+    and leaves the others without gradient, which its reducer cannot express. The main process writes the
+    checkpoints, previews and the result.
     """
     preset = preset or get_preset(cfg.preset)
-    if cache.crops.shape[1] != preset.crop:
-        raise ValueError(
-            f"cache crops are {cache.crops.shape[1]} px, preset {preset.name} needs {preset.crop}"
-        )
+    caches = [caches] if isinstance(caches, FrameCache) else list(caches)
+    if not caches:
+        raise ValueError("no training frames")
+    for cache in caches:
+        if cache.crops.shape[1] != preset.crop:
+            raise ValueError(
+                f"cache crops are {cache.crops.shape[1]} px, preset {preset.name} needs {preset.crop}"
+            )
     steps = cfg.steps or preset.steps
+    world, main = (group.world, group.main) if group is not None else (1, True)
+    if world > 1 and cfg.adversarial_weight > 0:
+        raise ValueError("the adversarial term trains on one process only")
     out_dir.mkdir(parents=True, exist_ok=True)
-    sources = SourceSampler(cache, preset, cfg.source_gap_s) if preset.source_input else None
+    sources = SourceSampler(preset, cfg.source_gap_s) if preset.source_input else None
     torch.manual_seed(cfg.seed)
     net = make_renderer(preset).to(device)
-    opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
+    start = initial_weights(net, preset, cfg.init)
+    # one texture per video; the renderer's own is the first one's
+    textures = nn.ModuleList([net.texture])
+    textures.extend(copy.deepcopy(net.texture) for _ in caches[1:])
+    opt = torch.optim.Adam([*net.parameters(), *textures[1:].parameters()], lr=cfg.lr)
     step, elapsed, log_rows = 0, 0.0, []
     ckpt = out_dir / "checkpoint.pt"
     if ckpt.exists():
         try:
             state = torch.load(ckpt, weights_only=True, map_location=device)
             net.load_state_dict(state["net"])
+            if "textures" in state or len(caches) > 1:  # (older single-video checkpoints have none)
+                textures.load_state_dict(state["textures"])
             opt.load_state_dict(state["opt"])
         except (RuntimeError, KeyError, ValueError) as e:
             raise FormatError(
-                f"{ckpt} was written by another nvp version or preset and cannot be resumed; "
-                "delete it to train from scratch"
+                f"{ckpt} was written by another nvp version, preset or set of videos and cannot be "
+                "resumed; delete it to train from scratch"
             ) from e
         step, elapsed, log_rows = int(state["step"]), float(state["elapsed"]), json.loads(state["log"])
         log.info("resuming renderer training at step %d", step)
 
     def save_checkpoint() -> None:
+        if not main:
+            return
         tmp = out_dir / ".checkpoint.tmp"
         torch.save(
             {
                 "net": net.state_dict(),
+                "textures": textures.state_dict(),
                 "opt": opt.state_dict(),
                 "step": step,
                 "elapsed": elapsed,
@@ -247,7 +314,6 @@ def train_renderer(
         from renderer.perceptual import VGGPerceptual
 
         perceptual = VGGPerceptual(cfg.vgg_weights).to(device)
-    n = len(cache.frames)
     # with a time budget the bar counts seconds, so it shows the time left; else it counts steps
     timed = cfg.budget_s is not None
     bar = tqdm(
@@ -256,7 +322,7 @@ def train_renderer(
         desc=f"train renderer ({preset.name})",
         unit="s" if timed else "it",
         bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} s, {remaining} left{postfix}" if timed else None,
-        disable=not progress,
+        disable=not (progress and main),
     )
     running: list[float] = []
     t_last = time.perf_counter()
@@ -266,35 +332,47 @@ def train_renderer(
             governor.update()
         net.train()
         progress = step / steps if cfg.budget_s is None else max(step / steps, elapsed / cfg.budget_s)
-        for group in opt.param_groups:
-            group["lr"] = learning_rate(cfg, progress)
+        for params in opt.param_groups:
+            params["lr"] = learning_rate(cfg, progress)
         rng = np.random.default_rng([cfg.seed, step])
-        idx = rng.integers(0, n, preset.batch)
+        person = int(rng.integers(len(caches))) if len(caches) > 1 else 0
+        cache = caches[person]
+        idx = rng.integers(0, len(cache.frames), preset.batch)
         target, geo = cache.batch(idx, device)
         region = mix_regions(geo.region, cache, rng, cfg.region_mix)
-        source = sources(idx, rng).to(device) if sources is not None else None
-        interior, final = net(geo.uv, geo.mask, geo.mouth, blank_face(target, region), region, source)
-        loss = renderer_loss(interior, final, target, geo.mask, cfg)
+        source = sources(cache, idx, rng).to(device) if sources is not None else None
+        uv, mask, mouth = geo.uv, geo.mask, geo.mouth
+        if world > 1:  # this process's share of the batch (drawn whole, so every process draws alike)
+            part = group.share(preset.batch)
+            target, uv, mask, mouth, region = target[part], uv[part], mask[part], mouth[part], region[part]
+            source = source[part] if source is not None else None
+        interior, final = net(uv, mask, mouth, blank_face(target, region), region, source, textures[person])
+        loss = renderer_loss(interior, final, target, mask, cfg)
         if perceptual is not None:
             loss = loss + cfg.vgg_weight * perceptual(final, target)
         if critic is not None and progress >= cfg.adversarial_start:
-            loss = loss + cfg.adversarial_weight * generator_loss(critic, final, geo.mask)
+            loss = loss + cfg.adversarial_weight * generator_loss(critic, final, mask)
         opt.zero_grad(set_to_none=True)
         loss.backward()
+        if world > 1:
+            average_gradients(opt, world)
         opt.step()
         if critic is not None:
             critic_opt.zero_grad(set_to_none=True)  # also drops what the renderer's loss left on it
-            critic_loss(critic, target, final, geo.mask).backward()
+            critic_loss(critic, target, final, mask).backward()
             critic_opt.step()
         step += 1
         now = time.perf_counter()
         elapsed += now - t_last
         t_last = now
-        running.append(loss.item())
+        value = loss.item()
+        if world > 1:  # the processes agree on the time (when to stop) and report the whole batch's loss
+            elapsed, value = group.mean(elapsed), group.mean(value)
+        running.append(value)
         bar.update(min(elapsed, bar.total) - bar.n if timed else 1)
         if step % 50 == 0:
             bar.set_postfix(step=step, loss=f"{np.mean(running[-50:]):.4f}")
-        if step % cfg.preview_every == 0 or step == FIRST_PREVIEW:
+        if main and (step % cfg.preview_every == 0 or step == FIRST_PREVIEW):
             _preview(out_dir / f"preview_{step:06d}.png", target, interior, final)
         if step % cfg.checkpoint_every == 0 or step == steps:
             log_rows.append({"step": step, "loss": float(np.mean(running)), "seconds": round(elapsed, 1)})
@@ -306,13 +384,37 @@ def train_renderer(
     if running:
         log_rows.append({"step": step, "loss": float(np.mean(running)), "seconds": round(elapsed, 1)})
     save_checkpoint()
+    if len(caches) > 1:  # the generic renderer's texture: where a new person's starts
+        with torch.no_grad():
+            net.texture.texture.copy_(torch.stack([t.texture for t in textures]).mean(0))
     info = {
         "steps": step,
         "train_seconds": round(elapsed, 1),
-        "train_frames": int(n),
+        "train_frames": int(sum(len(c.frames) for c in caches)),
+        "init": start,
+        "processes": world,
+        **({"videos": list(names)} if names is not None else {}),
         "parameters": count_parameters(net),
         "config": asdict(cfg),
         "log": log_rows,
     }
-    save_renderer(net, out_dir, preset, info)
+    if main:
+        save_renderer(net, out_dir, preset, info)
+    if group is not None:
+        group.barrier()
     return info
+
+
+def average_gradients(opt: torch.optim.Optimizer, world: int) -> None:
+    """Replace every gradient of ``opt``'s parameters by its mean over the ``world`` training processes
+    (parameters without a gradient, the textures a step did not use, are left alone alike everywhere)."""
+    import torch.distributed as dist
+
+    grads = [p.grad for g in opt.param_groups for p in g["params"] if p.grad is not None]
+    flat = torch.cat([g.reshape(-1) for g in grads])
+    dist.all_reduce(flat)
+    flat /= world
+    offset = 0
+    for g in grads:
+        g.copy_(flat[offset : offset + g.numel()].view_as(g))
+        offset += g.numel()

@@ -36,8 +36,10 @@ def evaluate(
     detail_weight: float = 0.0,
     source_gap_s: tuple[float, float] | None = None,
     adversarial_weight: float = 0.0,
+    init: str = "generic",
 ) -> dict:
     from nvp.app.corpus import tracked_cached
+    from nvp.app.fit import renderer_init
     from nvp.errors import FormatError
     from nvp.face_model import default_face_model
     from nvp.media import iter_frames
@@ -69,6 +71,7 @@ def evaluate(
         budget_s=None if steps else budget_min * 60,
         detail_weight=detail_weight,
         adversarial_weight=adversarial_weight,
+        init=renderer_init(init),
         **({"source_gap_s": tuple(source_gap_s)} if source_gap_s else {}),
     )
     train_renderer(cache, cfg, out, preset=chosen)
@@ -107,6 +110,7 @@ def evaluate(
         "train_frames": manifest["train_frames"],
         "test_frames": len(rows),
         "preset": manifest["preset"]["name"],
+        "init": manifest.get("init", "scratch").split(":")[0],
         "steps": manifest["steps"],
         "train_minutes": round(manifest["train_seconds"] / 60, 1),
         "psnr_full": float(r[:, 0].mean()),
@@ -141,6 +145,11 @@ def add_variant_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument(
         "--adversarial-weight", type=float, default=0.0, help="weight of the patch-adversarial loss"
     )
+    ap.add_argument(
+        "--init",
+        default="generic",
+        help="start of the training: generic (the shipped pre-trained renderer), scratch, or a folder",
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -170,6 +179,7 @@ def main(argv: list[str] | None = None) -> int:
             args.detail_weight,
             args.source_gap,
             args.adversarial_weight,
+            args.init,
         )
         for v in args.videos
     ]

@@ -43,6 +43,24 @@ def corpus(demo_clip, tmp_path_factory):
     return folder
 
 
+def test_pretrain_renderer_command_and_a_training_that_starts_from_it(corpus, demo_clip, tmp_path):
+    out = tmp_path / "generic"
+    proc = nvp("pretrain-renderer", corpus, "-o", out, "--steps", 3, "--max-frames", 8)
+    assert proc.returncode == 0, proc.stderr
+    m = json.loads((out / "renderer.json").read_text())
+    assert m["videos"] == ["a.mp4", "b.mp4"] and m["steps"] == 3 and m["train_frames"] == 16
+    assert np.load(out / "renderer.npz")["composite.out.weight"].dtype == np.float16  # a starting point
+    track = tmp_path / "track"
+    assert nvp("track", demo_clip.path, "-o", track).returncode == 0
+    proc = nvp("train-renderer", track, demo_clip.path, "-o", tmp_path / "r", "--steps", 2, "--init", out)
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads((tmp_path / "r" / "renderer.json").read_text())["init"] == str(out)
+    # one usable video is not a corpus
+    proc = nvp("pretrain-renderer", corpus, "-o", tmp_path / "x", "--steps", 3, "--exclude", "b.mp4")
+    assert_one_line_error(proc, "at least 2 usable videos")
+    assert not (tmp_path / "x" / "renderer.json").exists()
+
+
 def test_train_audio2exp_command(corpus, tmp_path):
     out = tmp_path / "a2e"
     args = ("--val", "b.mp4", "--steps", 4, "--val-every", 2, "--noise-snr", 10)

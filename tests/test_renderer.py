@@ -457,3 +457,115 @@ def test_mask_morphology_equals_pooling(shape, r):
     assert dilate(m, 0) is m and box_blur(m, 0) is m
     wide = dilate(m[..., :3, :3], 5)  # a window wider than the image: the image's maximum everywhere
     assert torch.equal(wide, m[..., :3, :3].amax((-2, -1), keepdim=True).expand_as(wide))
+
+
+def test_pretraining_on_many_videos_resumes_exactly_and_saves_their_mean_texture(
+    footage, face_model, tmp_path
+):
+    from nvp.errors import FormatError
+
+    path, seq = footage
+    caches = [build_cache(path, seq, face_model, TINY, np.arange(a, a + 5), progress=False) for a in (0, 5)]
+    cfg = RendererTrainConfig(steps=4, checkpoint_every=2, preview_every=10**6, lr_final=1.0, init=None)
+    train_renderer(caches, cfg, tmp_path / "a", progress=False, preset=TINY, names=["x", "y"])
+    train_renderer(caches, replace(cfg, steps=2), tmp_path / "b", progress=False, preset=TINY)
+    train_renderer(caches, cfg, tmp_path / "b", progress=False, preset=TINY)
+    a, _, m = load_renderer(tmp_path / "a")
+    b, _, _ = load_renderer(tmp_path / "b")
+    for (k, va), vb in zip(a.state_dict().items(), b.state_dict().values(), strict=True):
+        torch.testing.assert_close(va, vb, msg=k)
+    state = torch.load(tmp_path / "a" / "checkpoint.pt", weights_only=True)
+    own = [state["textures"][f"{i}.texture"] for i in range(2)]
+    assert not torch.allclose(own[0], own[1])  # each video learns its own texture, the networks are shared
+    torch.testing.assert_close(a.texture.texture.detach(), (own[0] + own[1]) / 2)
+    assert m["videos"] == ["x", "y"] and m["init"] == "scratch" and m["train_frames"] == 10
+    with pytest.raises(FormatError, match="cannot be resumed"):  # another set of videos
+        train_renderer([*caches, caches[0]], cfg, tmp_path / "a", progress=False, preset=TINY)
+
+
+def test_a_training_starts_from_a_renderer_of_the_same_structure_only(tmp_path):
+    from nvp.errors import FormatError
+    from renderer.networks import make_renderer, save_renderer
+    from renderer.train import initial_weights
+
+    start = make_renderer(TINY)
+    with torch.no_grad():
+        for p in start.parameters():
+            p.add_(torch.randn_like(p) * 0.1)
+    save_renderer(start, tmp_path / "g", TINY, {}, half=True)
+    net = make_renderer(TINY)
+    assert initial_weights(net, TINY, str(tmp_path / "g")) == str(tmp_path / "g")
+    for (k, got), want in zip(net.state_dict().items(), start.state_dict().values(), strict=True):
+        torch.testing.assert_close(got, want, atol=2e-3, rtol=2e-3, msg=k)  # stored as float16
+    assert initial_weights(make_renderer(TINY), TINY, None) == "scratch"
+    assert initial_weights(make_renderer(TINY), TINY, "generic") == "scratch"  # none ships for 'tiny'
+    wide = replace(TINY, base=8)
+    with pytest.raises(FormatError, match="another structure"):
+        initial_weights(make_renderer(wide), wide, str(tmp_path / "g"))
+
+
+def test_a_person_trained_from_a_pretrained_start_learns_faster(footage, face_model, tmp_path):
+    from renderer.render import FrameRenderer
+
+    path, seq = footage
+    caches = [build_cache(path, seq, face_model, TINY, np.arange(a, a + 5), progress=False) for a in (0, 5)]
+    pre = RendererTrainConfig(steps=150, lr=3e-3, init=None, checkpoint_every=10**6, preview_every=10**6)
+    train_renderer(caches, pre, tmp_path / "generic", progress=False, preset=TINY)
+    person = build_cache(path, seq, face_model, TINY, np.arange(10), progress=False)
+    real = list(iter_frames(path))[11]  # never trained on
+
+    def error(init) -> float:
+        out = tmp_path / str(init is None)
+        cfg = RendererTrainConfig(steps=10, lr=3e-3, init=init, checkpoint_every=10**6, preview_every=10**6)
+        train_renderer(person, cfg, out, progress=False, preset=TINY)
+        with FrameRenderer(out, face_model, seq, detail=False) as fr:
+            img = fr.render(real, 11, fr.tracked(11))
+        return float(np.abs(img.astype(float) - real).mean())
+
+    assert error(str(tmp_path / "generic")) < 0.8 * error(None)
+
+
+def test_the_network_window_holds_the_painted_part_and_its_context():
+    from renderer.render import network_window
+
+    paint = torch.zeros(1, 1, 192, 192)
+    assert network_window(paint, 48) == (slice(0, 192), slice(0, 192))  # nothing painted: the whole crop
+    paint[..., 100:170, 60:130] = 1
+    rows, cols = network_window(paint, 20)
+    assert (rows.start, rows.stop, cols.start, cols.stop) == (80, 192, 32, 160)
+    for s in (rows, cols):  # the strided U-Nets need sides divisible by 16
+        assert s.start % 16 == 0 and (s.stop - s.start) % 16 == 0
+
+
+def test_two_processes_under_torchrun_follow_the_one_process_pretraining(footage, face_model, tmp_path):
+    import json
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    path, seq = footage
+    for a in (0, 5):
+        cache = build_cache(path, seq, face_model, TINY, np.arange(a, a + 5), progress=False)
+        cache.save(tmp_path / "caches" / f"c{a}")
+    script = Path(__file__).parent / "ddp_pretrain_toy.py"
+    torchrun = Path(sys.executable).with_name("torchrun")
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    caches = tmp_path / "caches"
+    runs = {
+        "one": [sys.executable, script, caches, tmp_path / "one"],
+        "two": [torchrun, "--standalone", "--nproc_per_node", "2", script, caches, tmp_path / "two"],
+    }
+    for name, cmd in runs.items():
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env)
+        assert proc.returncode == 0, f"{name}: {proc.stderr[-2000:]}"
+    manifests = {k: json.loads((tmp_path / k / "renderer.json").read_text()) for k in runs}
+    assert manifests["one"]["processes"] == 1 and manifests["two"]["processes"] == 2
+    logs = {k: m["log"] for k, m in manifests.items()}
+    assert [r["step"] for r in logs["one"]] == [r["step"] for r in logs["two"]] == [2, 4, 6]
+    # the same batches, each process half of each, gradients averaged: the same run up to float rounding
+    np.testing.assert_allclose([r["loss"] for r in logs["two"]], [r["loss"] for r in logs["one"]], rtol=1e-4)
+    one, _, _ = load_renderer(tmp_path / "one")
+    two, _, _ = load_renderer(tmp_path / "two")
+    for (k, a), b in zip(one.state_dict().items(), two.state_dict().values(), strict=True):
+        torch.testing.assert_close(b, a, atol=1e-5, rtol=1e-4, msg=k)

@@ -94,6 +94,30 @@ def _cmd_train_opening(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_pretrain_renderer(args: argparse.Namespace) -> int:
+    from nvp.app.pretrain_renderer import corpus_videos, pretrain_renderer
+
+    out = Path(args.output)
+    cache = Path(args.cache) if args.cache else out.parent / ".nvp-cache"
+    videos = corpus_videos(Path(args.corpus), args.exclude)
+    info = pretrain_renderer(
+        videos,
+        out,
+        cache,
+        args.preset,
+        args.budget_minutes,
+        args.steps,
+        args.max_frames,
+        _device(args.device),
+        progress=not args.quiet,
+    )
+    print(
+        f"generic {args.preset} renderer: {len(info['videos'])} videos, {info['train_frames']} frames, "
+        f"{info['steps']} steps in {info['train_seconds'] / 60:.1f} min → {out / 'renderer.json'}"
+    )
+    return 0
+
+
 def _cmd_person_map(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
@@ -185,6 +209,7 @@ def _cmd_predict(args: argparse.Namespace) -> int:
 def _cmd_train_renderer(args: argparse.Namespace) -> int:
     import numpy as np
 
+    from nvp.app.fit import renderer_init
     from nvp.errors import NvpError
     from nvp.face_model import default_face_model
     from nvp.media import probe_video
@@ -206,7 +231,12 @@ def _cmd_train_renderer(args: argparse.Namespace) -> int:
     budget = None if args.budget_minutes is None else args.budget_minutes * 60
     vgg = str(args.vgg_weights) if args.vgg_weights else None
     cfg = RendererTrainConfig(
-        preset=args.preset, steps=args.steps, budget_s=budget, seed=args.seed, vgg_weights=vgg
+        preset=args.preset,
+        steps=args.steps,
+        budget_s=budget,
+        seed=args.seed,
+        vgg_weights=vgg,
+        init=renderer_init(args.init),
     )
     result = train_renderer(
         cache, cfg, Path(args.output), device=_device(args.device), progress=not args.quiet
@@ -260,6 +290,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
         features=args.features,
         device=_device(args.device),
         vgg_weights=str(args.vgg_weights) if args.vgg_weights else None,
+        renderer_init=args.init,
     )
     bundle = fit(args.video, args.output, cfg, progress=not args.quiet)
     st = bundle.manifest["stages"]
@@ -486,6 +517,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         steps=args.steps,
         side_by_side=args.side_by_side,
         device=_device(args.device),
+        renderer_init=args.init,
     )
     several = len(args.video) > 1
     if args.output:
@@ -570,12 +602,20 @@ def _add_renderer_training_args(p: argparse.ArgumentParser, budget_minutes: floa
     p.add_argument(
         "--budget-minutes", type=float, default=budget_minutes, help="stop renderer training after this long"
     )
+    p.add_argument(
+        "--init",
+        default=FitConfig.renderer_init,
+        metavar="generic|scratch|FOLDER",
+        help="start renderer training from the shipped generic renderer (default), from scratch, or from "
+        "a renderer folder (nvp train-renderer / pretrain-renderer output)",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The parser; option defaults come from the config dataclasses (light modules: no torch)."""
     from nvp.app.evaluate import EvalConfig
     from nvp.app.fit import FitConfig
+    from nvp.app.pretrain_renderer import MAX_FRAMES
 
     ap = argparse.ArgumentParser(
         prog="nvp", description="Neural Voice Puppetry: audio-driven facial reenactment."
@@ -636,6 +676,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--exclude", nargs="*", help="file names to leave out entirely")
     p.add_argument("--cache", type=Path, help="tracking/feature cache (default: next to OUTPUT)")
     p.set_defaults(func=_cmd_train_opening)
+
+    p = sub.add_parser(
+        "pretrain-renderer", help="pre-train a generic neural renderer on a folder of talking-head videos"
+    )
+    p.add_argument("corpus", type=Path, help="folder of talking-head videos")
+    p.add_argument("-o", "--output", type=Path, required=True, help="output folder (renderer.json/.npz)")
+    p.add_argument(
+        "--preset", choices=("cpu", "quality", "paper"), default=FitConfig.preset, help="renderer preset"
+    )
+    p.add_argument("--budget-minutes", type=float, default=45.0, help="training time (resumable)")
+    p.add_argument("--steps", type=int, help="train this many steps instead of for a time")
+    p.add_argument("--max-frames", type=int, default=MAX_FRAMES, help="frames kept per video (evenly spread)")
+    p.add_argument("--exclude", nargs="*", help="file names to leave out")
+    p.add_argument("--cache", type=Path, help="tracking/frame cache (default: next to OUTPUT)")
+    _add_device_arg(p)
+    p.set_defaults(func=_cmd_pretrain_renderer)
 
     p = sub.add_parser("person-map", help="learn a person's talking style (closed form) from their video")
     p.add_argument("video", type=Path, help="the person talking (video with audio)")

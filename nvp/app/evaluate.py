@@ -51,6 +51,8 @@ class EvalConfig:
     """Also write ``side_by_side.mp4`` (real | visual | audio)."""
     device: str = "cpu"
     """Torch device for renderer training and rendering."""
+    renderer_init: str = "generic"
+    """Where renderer training starts (``FitConfig.renderer_init``)."""
 
 
 def _trim(video: Path, out: Path, frames: int, fps: float) -> None:
@@ -170,7 +172,9 @@ def evaluate_video(
     train_clip = out / "train_part.mp4"
     if not train_clip.exists():
         _trim(video, train_clip, split, seq.fps)
-    fcfg = FitConfig(cfg.preset, cfg.budget_minutes, cfg.steps, cfg.features, cfg.device)
+    fcfg = FitConfig(
+        cfg.preset, cfg.budget_minutes, cfg.steps, cfg.features, cfg.device, renderer_init=cfg.renderer_init
+    )
     bundle = fit(train_clip, out / "person", fcfg, progress, tracked=seq.head(split))
     t_fit = time.perf_counter() - t0
 

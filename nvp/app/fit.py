@@ -41,6 +41,9 @@ class FitConfig:
     """Torch device for renderer training (``cpu`` or ``cuda``)."""
     vgg_weights: str | None = None
     """Optional VGG-16 weights file for a perceptual renderer loss (see ``renderer.perceptual``)."""
+    renderer_init: str = "generic"
+    """Where renderer training starts: ``generic`` (the renderer pre-trained on many people that ships
+    with nvp, when the preset has one), ``scratch``, or a renderer folder."""
     min_seconds: float = 1.0
     """Shortest target video accepted; below ``warn_seconds`` nvp warns (1-3 minutes of speech are
     recommended: the style and the renderer learn from every frame)."""
@@ -151,8 +154,13 @@ def fit(
 
     if not builder.done("renderer"):
         t0 = _stage("renderer")
-        _train_renderer(builder, cfg, progress)
-        builder.mark_done("renderer", seconds=round(time.perf_counter() - t0, 2))
+        trained = _train_renderer(builder, cfg, progress)
+        builder.mark_done(
+            "renderer",
+            seconds=round(time.perf_counter() - t0, 2),
+            steps=trained["steps"],
+            start=trained["init"],
+        )
 
     from nvp.face_model import default_face_model
     from nvp.person import PersonStyle
@@ -194,6 +202,11 @@ def renderer_minutes(cfg: FitConfig) -> float | None:
     return None
 
 
+def renderer_init(name: str) -> str | None:
+    """``RendererTrainConfig.init`` for the ``--init`` option (``scratch`` → None)."""
+    return None if name == "scratch" else name
+
+
 def expected_minutes(cfg: FitConfig, frames: int) -> tuple[float, str]:
     """Rough wall time of a fit of ``frames`` frames and what it is made of (printed at the start)."""
     track = frames * TRACK_S_PER_FRAME / 60
@@ -214,8 +227,9 @@ def _check_speech(video: Path) -> None:
         raise NvpError(f"{video}: no speech found in its soundtrack; {GOOD_TARGET}")
 
 
-def _train_renderer(builder: BundleBuilder, cfg: FitConfig, progress: bool) -> None:
-    """Cache the footage's crops once (``work/renderer_frames``), then train (resumable)."""
+def _train_renderer(builder: BundleBuilder, cfg: FitConfig, progress: bool) -> dict:
+    """Cache the footage's crops once (``work/renderer_frames``), then train (resumable); returns the
+    training summary (``renderer.train.train_renderer``)."""
     from nvp.errors import FormatError
     from nvp.face_model import default_face_model
     from renderer.data import CACHE_BUDGET_MB, FrameCache, build_cache
@@ -235,9 +249,14 @@ def _train_renderer(builder: BundleBuilder, cfg: FitConfig, progress: bool) -> N
     minutes = renderer_minutes(cfg)
     budget = None if minutes is None else minutes * 60
     tcfg = RendererTrainConfig(
-        preset=cfg.preset, steps=cfg.steps, budget_s=budget, vgg_weights=cfg.vgg_weights
+        preset=cfg.preset,
+        steps=cfg.steps,
+        budget_s=budget,
+        vgg_weights=cfg.vgg_weights,
+        init=renderer_init(cfg.renderer_init),
     )
-    train_renderer(cache, tcfg, builder.path("renderer"), device=cfg.device, progress=progress)
+    info = train_renderer(cache, tcfg, builder.path("renderer"), device=cfg.device, progress=progress)
     for name in ("renderer_frames.json", "renderer_frames.npz"):
         (builder.work / name).unlink(missing_ok=True)
     (builder.path("renderer") / "checkpoint.pt").unlink(missing_ok=True)
+    return info
