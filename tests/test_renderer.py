@@ -569,3 +569,19 @@ def test_two_processes_under_torchrun_follow_the_one_process_pretraining(footage
     two, _, _ = load_renderer(tmp_path / "two")
     for (k, a), b in zip(one.state_dict().items(), two.state_dict().values(), strict=True):
         torch.testing.assert_close(b, a, atol=1e-5, rtol=1e-4, msg=k)
+
+
+def test_the_shipped_generic_renderer_fits_the_cpu_preset_and_is_small():
+    import json
+
+    from renderer.networks import generic_renderer_dir, load_renderer
+    from renderer.preset import get_preset
+
+    folder = generic_renderer_dir(get_preset("cpu"))
+    assert folder is not None
+    manifest = json.loads((folder / "renderer.json").read_text())
+    assert len(manifest["videos"]) >= 20
+    assert "dfrf__cnn2_25fps.mp4" not in manifest["videos"]  # the README's curves are measured on it
+    assert (folder / "renderer.npz").stat().st_size < 6 * 2**20
+    net, _, _ = load_renderer(folder)
+    assert all(torch.isfinite(p).all() for p in net.parameters())
