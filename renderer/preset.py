@@ -43,7 +43,7 @@ class Preset:
 
 
 PRESETS = {
-    "cpu": Preset("cpu", crop=192, base=16, dilated=False, texture_size=256, steps=8000, batch=2, minutes=20),
+    "cpu": Preset("cpu", crop=192, base=16, dilated=False, texture_size=256, steps=8000, batch=2, minutes=15),
     "quality": Preset(
         "quality", crop=256, base=32, dilated=False, texture_size=256, steps=12000, batch=4, minutes=45
     ),

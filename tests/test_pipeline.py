@@ -453,10 +453,10 @@ def test_batch_dub_of_ten_files_goes_on_past_a_failing_one(bundle, tmp_path):
 def test_a_fit_without_flags_ends_on_its_own_and_says_how_long_it_takes():
     from nvp.app.fit import FitConfig, expected_minutes, renderer_minutes
 
-    assert renderer_minutes(FitConfig()) == 20  # the cpu preset's default time on a CPU
+    assert renderer_minutes(FitConfig()) == 15  # the cpu preset's default time on a CPU
     assert renderer_minutes(FitConfig(preset="quality")) == 45
     assert renderer_minutes(FitConfig(budget_minutes=7)) == 7
     assert renderer_minutes(FitConfig(steps=100)) is None  # steps given: steps decide
     assert renderer_minutes(FitConfig(device="cuda")) is None  # a GPU runs the preset's steps
     total, parts = expected_minutes(FitConfig(), 3000)  # 2 minutes of 25 fps footage
-    assert 21 < total < 25 and "renderer training 20 min" in parts
+    assert 16 < total < 20 and "renderer training 15 min" in parts
