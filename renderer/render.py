@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 
@@ -50,8 +51,10 @@ class FrameRenderer:
         seq: TrackedSequence,
         device: str = "cpu",
         detail: bool = True,
+        bf16: bool | None = None,
     ) -> None:
         self.net, self.preset, self.manifest = load_renderer(renderer_dir, device)
+        self.bf16 = fast_bf16(device) if bf16 is None else bf16
         self.model, self.seq, self.device = model, seq, device
         self.boxes = sequence_boxes(model, seq)
         self.raster = Rasterizer(model, self.preset.crop, self.preset.region_grow)
@@ -116,14 +119,16 @@ class FrameRenderer:
         # it nothing of the footage's own mouth and chin shows through
         paint = face_region((lower > LOWER_FACE).float(), self.preset.region_grow) * region
         dev, (rows, cols) = self.device, network_window(paint, self.window_margin)
-        _, inside = self.net(
-            geo.uv[:, rows, cols].to(dev),
-            geo.mask[..., rows, cols].to(dev),
-            geo.mouth[..., rows, cols].to(dev),
-            blank_face(crop[..., rows, cols].to(dev), region[..., rows, cols].to(dev)),
-            region[..., rows, cols].to(dev),
-            source_in[None, ..., rows, cols].to(dev) if self.net.source_input else None,
-        )
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.bf16):
+            _, inside = self.net(
+                geo.uv[:, rows, cols].to(dev),
+                geo.mask[..., rows, cols].to(dev),
+                geo.mouth[..., rows, cols].to(dev),
+                blank_face(crop[..., rows, cols].to(dev), region[..., rows, cols].to(dev)),
+                region[..., rows, cols].to(dev),
+                source_in[None, ..., rows, cols].to(dev) if self.net.source_input else None,
+            )
+        inside = inside.float()
         final = crop.to(inside).clone()  # outside the window the crop itself (its paste weight is 0)
         final[..., rows, cols] = inside
         weight = self.weight * region_weight(paint)
@@ -167,6 +172,17 @@ class FrameRenderer:
             geo, src_crop, src_box, src_cam, src_geo.depth, (f, c), self._triangles, self._movable
         )
         return source_in, (src_img, src_crop * 255, src_box, pos, valid)
+
+
+def fast_bf16(device: str) -> bool:
+    """Whether the networks should run in bfloat16 on ``device``: on a CPU that computes it natively
+    (AVX512-BF16 or AMX), where the ``cpu`` preset's networks are 1.7x faster (measured on a 2-core AMD
+    EPYC: 32.5 → 18.8 ms per 144×192 window) and their output stays within 1/255 of float32 (mean 0.2/255).
+    ``NVP_PRECISION=fp32`` keeps float32; elsewhere (CPUs without it, GPUs) it is float32."""
+    if os.environ.get("NVP_PRECISION", "").lower() == "fp32" or not device.startswith("cpu"):
+        return False
+    checks = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")  # torch.cpu's own feature checks
+    return any(getattr(torch.cpu, name, lambda: False)() for name in checks)
 
 
 def network_window(paint: torch.Tensor, margin: int, multiple: int = 16) -> tuple[slice, slice]:

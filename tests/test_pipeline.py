@@ -460,3 +460,4 @@ def test_a_fit_without_flags_ends_on_its_own_and_says_how_long_it_takes():
     assert renderer_minutes(FitConfig(device="cuda")) is None  # a GPU runs the preset's steps
     total, parts = expected_minutes(FitConfig(), 3000)  # 2 minutes of 25 fps footage
     assert 16 < total < 20 and "renderer training 15 min" in parts
+    assert "tracking under a minute" in expected_minutes(FitConfig(), 500)[1]

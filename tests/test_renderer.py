@@ -585,3 +585,23 @@ def test_the_shipped_generic_renderer_fits_the_cpu_preset_and_is_small():
     assert (folder / "renderer.npz").stat().st_size < 6 * 2**20
     net, _, _ = load_renderer(folder)
     assert all(torch.isfinite(p).all() for p in net.parameters())
+
+
+def test_bfloat16_rendering_stays_within_a_few_levels_of_float32(footage, face_model, tmp_path, monkeypatch):
+    from renderer.render import FrameRenderer, fast_bf16
+
+    path, seq = footage
+    cache = build_cache(path, seq, face_model, TINY, np.arange(10), progress=False)
+    cfg = RendererTrainConfig(steps=20, lr=3e-3, init=None, checkpoint_every=10**6, preview_every=10**6)
+    train_renderer(cache, cfg, tmp_path / "r", progress=False, preset=TINY)
+    real = list(iter_frames(path))[11]
+    images = []
+    for bf16 in (False, True):
+        with FrameRenderer(tmp_path / "r", face_model, seq, bf16=bf16) as fr:
+            images.append(fr.render(real, 11, fr.tracked(11)).astype(float))
+    assert np.abs(images[0] - real).max() > 0  # something was painted
+    assert np.abs(images[0] - images[1]).max() <= 4
+    monkeypatch.setenv("NVP_PRECISION", "fp32")
+    assert not fast_bf16("cpu")
+    monkeypatch.delenv("NVP_PRECISION")
+    assert not fast_bf16("cuda")

@@ -210,11 +210,12 @@ def renderer_init(name: str) -> str | None:
 def expected_minutes(cfg: FitConfig, frames: int) -> tuple[float, str]:
     """Rough wall time of a fit of ``frames`` frames and what it is made of (printed at the start)."""
     track = frames * TRACK_S_PER_FRAME / 60
+    tracking = f"tracking about {track:.0f} min" if track >= 0.5 else "tracking under a minute"
     train = renderer_minutes(cfg)
     if train is None:
         steps = cfg.steps or "the preset's"
-        return track, f"tracking about {track:.0f} min, then renderer training for {steps} steps"
-    return track + train + 1, f"tracking about {track:.0f} min, renderer training {train:.0f} min"
+        return track, f"{tracking}, then renderer training for {steps} steps"
+    return track + train + 1, f"{tracking}, renderer training {train:.0f} min"
 
 
 def _check_speech(video: Path) -> None:
