@@ -8,6 +8,7 @@ background (6 channels) and outputs the final image, inpainting the seam.
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -249,3 +250,16 @@ def same_structure(a: Preset, b: Preset) -> bool:
     start from the other's weights)."""
     keys = ("crop", "base", "dilated", "texture_size", "region_grow", "source_input")
     return all(getattr(a, k) == getattr(b, k) for k in keys)
+
+
+def fast_bf16(device: str) -> bool:
+    """Whether the networks should run in bfloat16 (autocast; weights stay float32) on ``device``: on a CPU
+    that computes it natively (AVX512-BF16 or AMX). Measured on a 2-core AMD EPYC with the ``cpu`` preset:
+    rendering a 144×192 window 32.5 → 18.8 ms, output within 1/255 of float32 (mean 0.2/255).
+    ``NVP_PRECISION=fp32`` keeps float32; elsewhere (CPUs without it, GPUs) it is float32. Training stays
+    float32: in bfloat16 a step took 0.17 s instead of 0.27-0.30, but 15 minutes of fine-tuning on
+    dfrf__cnn2 (5,046 steps instead of 3,572) gave the same held-out mouth box (29.96 vs 30.06 dB)."""
+    if os.environ.get("NVP_PRECISION", "").lower() == "fp32" or not device.startswith("cpu"):
+        return False
+    checks = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")  # torch.cpu's own feature checks
+    return any(getattr(torch.cpu, name, lambda: False)() for name in checks)

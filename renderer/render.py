@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 
@@ -20,7 +19,7 @@ from renderer.data import (
     moved_source,
     sequence_boxes,
 )
-from renderer.networks import load_renderer
+from renderer.networks import fast_bf16, load_renderer
 
 LOWER_FACE = 0.02
 """Mouth weight (``FaceModel.mouth_weights``) above which a mesh pixel is part of the re-rendered lower
@@ -172,17 +171,6 @@ class FrameRenderer:
             geo, src_crop, src_box, src_cam, src_geo.depth, (f, c), self._triangles, self._movable
         )
         return source_in, (src_img, src_crop * 255, src_box, pos, valid)
-
-
-def fast_bf16(device: str) -> bool:
-    """Whether the networks should run in bfloat16 on ``device``: on a CPU that computes it natively
-    (AVX512-BF16 or AMX), where the ``cpu`` preset's networks are 1.7x faster (measured on a 2-core AMD
-    EPYC: 32.5 → 18.8 ms per 144×192 window) and their output stays within 1/255 of float32 (mean 0.2/255).
-    ``NVP_PRECISION=fp32`` keeps float32; elsewhere (CPUs without it, GPUs) it is float32."""
-    if os.environ.get("NVP_PRECISION", "").lower() == "fp32" or not device.startswith("cpu"):
-        return False
-    checks = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")  # torch.cpu's own feature checks
-    return any(getattr(torch.cpu, name, lambda: False)() for name in checks)
 
 
 def network_window(paint: torch.Tensor, margin: int, multiple: int = 16) -> tuple[slice, slice]:

@@ -588,7 +588,8 @@ def test_the_shipped_generic_renderer_fits_the_cpu_preset_and_is_small():
 
 
 def test_bfloat16_rendering_stays_within_a_few_levels_of_float32(footage, face_model, tmp_path, monkeypatch):
-    from renderer.render import FrameRenderer, fast_bf16
+    from renderer.networks import fast_bf16
+    from renderer.render import FrameRenderer
 
     path, seq = footage
     cache = build_cache(path, seq, face_model, TINY, np.arange(10), progress=False)
