@@ -574,7 +574,7 @@ def test_two_processes_under_torchrun_follow_the_one_process_pretraining(footage
 def test_the_shipped_generic_renderer_fits_the_cpu_preset_and_is_small():
     import json
 
-    from renderer.networks import generic_renderer_dir, load_renderer
+    from renderer.networks import generic_renderer_dir
     from renderer.preset import get_preset
 
     folder = generic_renderer_dir(get_preset("cpu"))
