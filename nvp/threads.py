@@ -64,6 +64,19 @@ def fixed_threads() -> int | None:
     return None
 
 
+def frame_workers() -> int:
+    """How many frames to render at once (one PyTorch thread each, see
+    :func:`renderer.render.render_frames`): the fixed count (:func:`fixed_threads`), else the cores this
+    process may use, at most PyTorch's own default thread count (hyper-threads do not speed the networks
+    up)."""
+    import torch
+
+    global _TORCH_DEFAULT
+    if _TORCH_DEFAULT is None:
+        _TORCH_DEFAULT = torch.get_num_threads()
+    return fixed_threads() or max(1, min(available_cores(), _TORCH_DEFAULT))
+
+
 def threads_for(others_busy: float, cores: int) -> int:
     """Threads to use when other processes keep ``others_busy`` cores busy out of ``cores``: the free
     ones, rounded, at least 1."""

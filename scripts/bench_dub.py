@@ -5,9 +5,11 @@
 Without ``--person``, a bundle is made from nvp's demo target (a ``--size``² talking astronaut, renderer
 trained for 2 steps: speed does not depend on training). The driving audio is ``--seconds`` of a
 synthetic voice; the dub runs in a fresh process so its peak RSS is its own, a second time while another
-process keeps one core busy (a Python busy loop), and a third time under ``cProfile``, which splits its
-wall time into stages (decode, rasterize, network, detail transfer, crop and paste, encode, audio →
-expressions; profiling slows everything a little, so the shares matter, not the sums).
+process keeps one core busy (a Python busy loop), and a third time under ``cProfile`` with one render
+worker (``NVP_THREADS=1``: cProfile sees only its own thread, and the dub renders frames in parallel
+threads otherwise), which splits the wall time into stages (decode, rasterize, network, detail transfer,
+crop and paste, encode, audio → expressions; profiling slows everything a little, so the shares matter,
+not the sums).
 """
 
 from __future__ import annotations
@@ -93,13 +95,13 @@ def main(argv: list[str] | None = None) -> int:
         wav = tmp / "speech.wav"
         sf.write(wav, synth_voice(speech_script(args.seconds, rng), args.seconds, rng), AUDIO_RATE)
 
-        def run(*extra: str) -> dict:
+        def run(*extra: str, env: dict | None = None) -> dict:
             cmd = [sys.executable, __file__, "--child", str(wav), str(person), str(tmp / "dub.mp4"), *extra]
-            proc = subprocess.run(cmd, capture_output=True, text=True, check=True)
+            proc = subprocess.run(cmd, capture_output=True, text=True, check=True, env=env)
             return json.loads(proc.stdout.strip().splitlines()[-1])
 
         m = run()
-        stages = run("--profile")
+        stages = run("--profile", env={**os.environ, "NVP_THREADS": "1"})
         busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])  # another process, one core
         try:
             time.sleep(1.0)
@@ -119,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
         f"with another process keeping one core busy: {m['busy_fps']:.1f} frames/s "
         f"({m['busy_fps'] / m['fps']:.0%} of the above)"
     )
-    print(f"\nwhere the time goes (profiled run, {stages['wall_s']:.1f} s wall):\n")
+    print(f"\nwhere the time goes (profiled run on one render worker, {stages['wall_s']:.1f} s wall):\n")
     print("| stage | s | ms/frame | share |\n|---|---|---|---|")
     rest = stages["wall_s"] - sum(stages["stages_s"].values())
     for stage, sec in [*stages["stages_s"].items(), ("other", rest)]:

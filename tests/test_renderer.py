@@ -606,3 +606,43 @@ def test_bfloat16_rendering_stays_within_a_few_levels_of_float32(footage, face_m
     assert not fast_bf16("cpu")
     monkeypatch.delenv("NVP_PRECISION")
     assert not fast_bf16("cuda")
+
+
+def test_frames_rendered_in_parallel_equal_one_at_a_time_in_order(footage, face_model, tmp_path):
+    from nvp.geometry import posed
+    from renderer.render import FrameRenderer, render_frames
+
+    path, seq = footage
+    cache = build_cache(path, seq, face_model, TINY, np.arange(10), progress=False)
+    cfg = RendererTrainConfig(steps=10, lr=3e-3, init=None, checkpoint_every=10**6, preview_every=10**6)
+    train_renderer(cache, cfg, tmp_path / "r", progress=False, preset=TINY)
+    frames = list(iter_frames(path))
+    order = [3, 11, 0, 7, 7, 5, 10, 1, 2]
+
+    def opened(j: int, k: int, tracked: np.ndarray) -> np.ndarray:  # a different mouth per output frame
+        expression = seq.expression[k].copy()
+        expression[:3] += 2.0 * np.sin(j + 1)
+        return posed(face_model.vertices(seq.identity, expression), seq.rotation[k], seq.translation[k])
+
+    variants = {"re": None, "dub": opened}
+    with FrameRenderer(tmp_path / "r", face_model, seq) as fr:
+        one = list(render_frames(fr, (frames[k] for k in order), order, variants, False, workers=1))
+        two = list(render_frames(fr, (frames[k] for k in order), order, variants, False, workers=3))
+
+        def broken(j: int, k: int, tracked: np.ndarray) -> np.ndarray:
+            if j == 4:
+                raise RuntimeError("frame 4 is broken")
+            return tracked
+
+        with pytest.raises(RuntimeError, match="frame 4"):
+            for _ in render_frames(fr, (frames[k] for k in order), order, {"x": broken}, False, workers=2):
+                pass
+        # the renderer still works after the failed loop (its twins were closed, not it)
+        assert fr.render(frames[0], 0, fr.tracked(0)).shape == frames[0].shape
+    assert len(one) == len(two) == len(order)
+    for k, (f1, m1), (f2, m2) in zip(order, one, two, strict=True):
+        np.testing.assert_array_equal(f1, frames[k])
+        np.testing.assert_array_equal(f2, frames[k])
+        for name in variants:
+            np.testing.assert_array_equal(m1[name], m2[name])
+    assert np.abs(one[0][1]["dub"].astype(int) - one[0][1]["re"]).max() > 0  # the dub moved the mouth
