@@ -69,12 +69,15 @@ def cut(frames: torch.Tensor, boxes: torch.Tensor, size: int) -> torch.Tensor:
     return F.grid_sample(frames.float(), grid, mode="bilinear", padding_mode="border", align_corners=False)
 
 
-def box_slices(box: np.ndarray, height: int, width: int) -> tuple[slice, slice]:
-    """Row and column slices of the pixels of a ``height × width`` frame inside crop ``box``."""
+def box_slices(box: np.ndarray, height: int, width: int, grow: int = 0) -> tuple[slice, slice]:
+    """Row and column slices of the pixels of a ``height × width`` frame inside crop ``box``; ``grow``: that
+    many more pixels on every side (``grow=2`` holds every pixel a bilinear cut or paste of the box
+    touches)."""
     cx, cy, side = (float(v) for v in box)
+    half = side / 2
     return (
-        slice(max(int(cy - side / 2), 0), min(int(cy + side / 2), height)),
-        slice(max(int(cx - side / 2), 0), min(int(cx + side / 2), width)),
+        slice(max(int(cy - half) - grow, 0), max(min(int(cy + half) + grow, height), 0)),
+        slice(max(int(cx - half) - grow, 0), max(min(int(cx + half) + grow, width), 0)),
     )
 
 
@@ -144,11 +147,17 @@ def paste_region(
     detail: tuple[torch.Tensor, torch.Tensor] | None = None,
     moved: tuple[torch.Tensor, torch.Tensor, np.ndarray, torch.Tensor, torch.Tensor] | None = None,
     paint: torch.Tensor | None = None,
+    interior: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, tuple[slice, slice]] | None:
     """:func:`paste` for the frame pixels under the box only: the blended pixels ``(C, h, w)``, their blend
     weight ``(h, w)`` and the ``(rows, columns)`` slices of the frame they replace; None when the box lies
     outside the frame. The rest of the frame is unchanged, so a caller holding the frame as uint8 need not
-    convert all of it."""
+    convert all of it.
+
+    ``interior = (patch, positions, mask, (row, col))``: where ``mask`` ``(h', w')`` (the crop's mouth
+    interior, a window of the crop from ``row``, ``col``) the crop is replaced by ``patch`` ``(C, P, P)``
+    (another footage frame's mouth, :mod:`renderer.mouths`) sampled at full resolution at ``positions``
+    ``(h', w', 2)`` (patch pixels)."""
     _, h, w = frame.shape
     s = crop.shape[-1]
     cx, cy, side = (float(v) for v in box)
@@ -179,9 +188,46 @@ def paste_region(
     if moved is not None:
         source, source_crop, source_box, _, _ = moved
         pos = sampled[0, n_maps : n_maps + 2].permute(1, 2, 0)  # (h, w, 2) source-frame pixels
-        strength = sampled[0, n_maps + 2 :]
+        strength = sampled[0, n_maps + 2 : n_maps + 3]
         sx, sy, sside = (float(v) for v in source_box)
         crop_pos = (pos - torch.tensor([sx - sside / 2, sy - sside / 2])) * (s / sside)
         fine = sample_pixels(source, pos) - sample_pixels(source_crop, crop_pos)
         blended = blended + a * strength * fine
+    if interior is not None:
+        _paste_interior(blended, rgb, a, (y0, x0), box, s, interior)
     return blended, a[0], (slice(y0, y1), slice(x0, x1))
+
+
+def _paste_interior(
+    blended: torch.Tensor,
+    rgb: torch.Tensor,
+    a: torch.Tensor,
+    origin: tuple[int, int],
+    box: np.ndarray,
+    size: int,
+    interior: tuple[torch.Tensor, torch.Tensor, torch.Tensor, tuple[int, int]],
+) -> None:
+    """:func:`paste_region`'s mouth interior, in place on ``blended`` ``(C, h, w)`` (frame pixels from
+    ``origin``; ``rgb`` and ``a`` the sampled crop and its weight there), over the frame pixels under the
+    interior's crop window only."""
+    patch, positions, mask, (row, col) = interior
+    cx, cy, side = (float(v) for v in box)
+    hw, ww = mask.shape
+    left, top = cx - side / 2, cy - side / 2
+    step = side / size  # frame pixels per crop pixel
+    _, h, w = blended.shape
+    fx0 = max(int(np.floor(left + col * step)) - origin[1], 0)
+    fx1 = min(int(np.ceil(left + (col + ww) * step)) - origin[1], w)
+    fy0 = max(int(np.floor(top + row * step)) - origin[0], 0)
+    fy1 = min(int(np.ceil(top + (row + hw) * step)) - origin[0], h)
+    if fx1 <= fx0 or fy1 <= fy0:
+        return
+    # those frame pixels' centres in the window's normalised coordinates (align_corners=False)
+    xs = ((torch.arange(fx0, fx1) + origin[1] + 0.5 - left) / step - col) / ww * 2 - 1
+    ys = ((torch.arange(fy0, fy1) + origin[0] + 0.5 - top) / step - row) / hw * 2 - 1
+    grid = torch.stack(torch.meshgrid(xs.float(), ys.float(), indexing="xy"), -1)[None]
+    maps = torch.cat([positions.permute(2, 0, 1), mask[None]])[None].float()
+    sampled = F.grid_sample(maps, grid, mode="bilinear", padding_mode="zeros", align_corners=False)[0]
+    inside = sampled[2:] * a[:, fy0:fy1, fx0:fx1]
+    colour = sample_pixels(patch, sampled[:2].permute(1, 2, 0))
+    blended[:, fy0:fy1, fx0:fx1] += inside * (colour - rgb[:, fy0:fy1, fx0:fx1])

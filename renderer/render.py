@@ -14,7 +14,7 @@ import torch
 
 from nvp.face_model import FaceModel
 from nvp.tracked import TrackedSequence
-from renderer.crop import cut, feather, paste_region, region_weight
+from renderer.crop import box_slices, cut, feather, paste_region, region_weight
 from renderer.data import (
     FrameGeometry,
     Rasterizer,
@@ -43,6 +43,9 @@ class FrameRenderer:
         seq: the footage's tracking (camera, per-frame crop boxes).
         device: torch device of the networks.
         detail: move the footage's own fine detail onto the painted lower face (see :meth:`render`).
+        interiors: paste the person's own mouth interiors (teeth) from the renderer folder's mouth bank
+            (``mouths.json``, :mod:`renderer.mouths`) where the rendered mouth is open; a renderer without a
+            bank renders the interior with its networks.
 
     Use as a context manager (it owns an OpenGL context).
     """
@@ -55,8 +58,16 @@ class FrameRenderer:
         device: str = "cpu",
         detail: bool = True,
         bf16: bool | None = None,
+        interiors: bool = True,
     ) -> None:
+        from renderer.mouths import MouthBank, interior_vertices
+
         self.net, self.preset, self.manifest = load_renderer(renderer_dir, device)
+        bank = Path(renderer_dir) / "mouths.json"
+        self.mouths = MouthBank.load(bank) if interiors and bank.exists() else None
+        if self.mouths is not None:
+            self._patches = torch.from_numpy(self.mouths.patches).permute(0, 3, 1, 2).float()
+            self._inner = interior_vertices(model)
         self.bf16 = fast_bf16(device) if bf16 is None else bf16
         self.model, self.seq, self.device = model, seq, device
         self.boxes = sequence_boxes(model, seq)
@@ -93,6 +104,7 @@ class FrameRenderer:
         original_cam: np.ndarray | None = None,
         source: tuple[np.ndarray, int, np.ndarray] | None = None,
         with_weight: bool = False,
+        mouth: int | None = None,
     ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
         """Frame ``index`` of the footage (``(H, W, 3)`` uint8) with the face replaced by a render of
         ``vertices_cam`` ``(V, 3)``; ``original_cam`` (the tracked geometry of that frame) widens the
@@ -103,23 +115,36 @@ class FrameRenderer:
         :mod:`renderer.warp`): ``source = (frame, index, tracked_cam)``, by default this very frame under
         ``original_cam`` (or ``vertices_cam`` when there is none). The mouth interior gets none.
 
+        With a mouth bank (``self.mouths``), where the new geometry shows the mouth interior the interior
+        of bank entry ``mouth`` is pasted, moved onto it (default: the entry whose inner lips are shaped
+        most like ``vertices_cam``'s; a dub passes a flicker-free choice,
+        :func:`renderer.mouths.choose_entries`).
+
         ``with_weight``: also return the ``(H, W)`` float32 weight of the render in the output (0 = the
         footage's own pixel), i.e. where nvp changed the picture."""
-        box = self.boxes[index]
-        f, c = self.seq.focal, self.seq.center
+        # only the frame pixels under the crop box are read and written: they are taken out of the frame
+        # (2 pixels more for the bilinear samples) and every pixel position below is relative to them
+        # (box and principal point shifted alike, so the crop camera is the same)
+        ys, xs = box_slices(self.boxes[index], *frame.shape[:2], grow=2)
+        if ys.stop <= ys.start or xs.stop <= xs.start:  # the face is outside the frame: nothing to paint
+            out = frame.copy()
+            return (out, np.zeros(frame.shape[:2], np.float32)) if with_weight else out
+        offset = np.array([xs.start, ys.start, 0.0])
+        box = self.boxes[index] - offset
+        f, c = self.seq.focal, self.seq.center - offset[:2]
         geo = self.raster(vertices_cam, f, c, box)
         region, lower = geo.region, geo.lower
         orig = None
         if original_cam is not None:
             orig = self.raster(original_cam, f, c, box)
             region, lower = torch.maximum(region, orig.region), torch.maximum(lower, orig.lower)
-        img = torch.from_numpy(frame).permute(2, 0, 1).float()
+        img = torch.from_numpy(frame[ys, xs]).permute(2, 0, 1).float()
         crop = cut(img[None], torch.from_numpy(box[None]).float(), self.preset.crop) / 255
         source_in, moved = None, None
         if self.detail or self.net.source_input:
             if source is None:  # this very frame under its own tracked geometry
                 cam, src_geo = (vertices_cam, geo) if original_cam is None else (original_cam, orig)
-                source_in, moved = self._moved(geo, img, index, cam, src_geo, crop[0])
+                source_in, moved = self._moved(geo, img, index, cam, src_geo, crop[0], offset[:2])
             else:
                 src_img = torch.from_numpy(source[0]).permute(2, 0, 1).float()
                 source_in, moved = self._moved(geo, src_img, source[1], source[2])
@@ -150,14 +175,42 @@ class FrameRenderer:
             detail=(crop[0] * 255, 1 - paint),
             moved=moved if self.detail else None,
             paint=paint,
+            interior=self._interior(geo, vertices_cam, index, mouth),
         )
         # only the pixels under the crop box change: the rest of the uint8 frame is copied as it is
         out, painted = frame.copy(), np.zeros(frame.shape[:2], np.float32)
         if pasted is not None:
             pixels, alpha, (rows, cols) = pasted
-            out[rows, cols] = pixels.clamp(0, 255).round().byte().permute(1, 2, 0).numpy()
-            painted[rows, cols] = alpha.numpy()
+            out[ys, xs][rows, cols] = pixels.clamp(0, 255).round().byte().permute(1, 2, 0).numpy()
+            painted[ys, xs][rows, cols] = alpha.numpy()
         return (out, painted) if with_weight else out
+
+    def _interior(
+        self, geo: FrameGeometry, vertices_cam: np.ndarray, index: int, mouth: int | None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, tuple[int, int]] | None:
+        """The ``interior`` argument of :func:`renderer.crop.paste_region`: bank entry ``mouth``'s patch
+        ``(3, P, P)``, and over the crop window around the interior, the patch pixel at each crop pixel
+        ``(h, w, 2)``, the interior mask ``(h, w)`` and the window's first row and column; None without a
+        bank or when no interior shows."""
+        from renderer.mouths import object_frame
+
+        if self.mouths is None:
+            return None
+        inside = geo.mouth[0, 0]
+        rows = torch.nonzero(inside.amax(1))[:, 0]
+        if len(rows) == 0:
+            return None
+        cols = torch.nonzero(inside.amax(0))[:, 0]
+        size = inside.shape[0]
+        r0, r1 = max(int(rows[0]) - 1, 0), min(int(rows[-1]) + 2, size)
+        c0, c1 = max(int(cols[0]) - 1, 0), min(int(cols[-1]) + 2, size)
+        if mouth is None:
+            k = index
+            shape = object_frame(vertices_cam[self._inner], self.seq.rotation[k], self.seq.translation[k])
+            mouth = int(np.argmin(self.mouths.distances(shape[None].astype(np.float32))[0]))
+        tri, bary = geo.triangle_id[r0:r1, c0:c1], geo.barycentric[r0:r1, c0:c1]
+        pos = self.mouths.positions(mouth, tri, bary, self._triangles)
+        return self._patches[mouth], pos, inside[r0:r1, c0:c1], (r0, c0)
 
     def _moved(
         self,
@@ -167,13 +220,16 @@ class FrameRenderer:
         src_cam: np.ndarray,
         src_geo: FrameGeometry | None = None,
         src_crop: torch.Tensor | None = None,
+        offset: np.ndarray | None = None,
     ) -> tuple[torch.Tensor, tuple]:
         """The source frame ``src_img`` ``(3, H, W)`` (frame ``src_index`` under ``src_cam`` ``(V, 3)``)
         moved onto the surface of ``geo``: the network's ``(4, S, S)`` source input and the ``moved``
         argument of :func:`renderer.crop.paste`; ``src_geo`` / ``src_crop`` (in [0, 1]) when the caller has
-        them already."""
-        src_box = self.boxes[src_index]
-        f, c = self.seq.focal, self.seq.center
+        them already; ``offset``: the frame pixel ``(x, y)`` where ``src_img`` starts (a part of the
+        frame)."""
+        shift = np.zeros(2) if offset is None else offset
+        src_box = self.boxes[src_index] - np.array([*shift, 0.0])
+        f, c = self.seq.focal, self.seq.center - shift
         if src_geo is None:
             src_geo = self.raster(src_cam, f, c, src_box)
         if src_crop is None:
@@ -216,6 +272,7 @@ def render_frames(
     progress: bool = True,
     desc: str = "render",
     workers: int | None = None,
+    mouths: Sequence[int] | None = None,
 ) -> Iterator[tuple[np.ndarray, dict[str, np.ndarray]]]:
     """The one render loop: footage ``frames`` (``(H, W, 3)`` uint8, one per entry of ``indices``, the
     footage frame each one is) in; for each, in order, the footage frame and its renders
@@ -223,7 +280,8 @@ def render_frames(
     or the consumer stopping).
 
     A variant ``None`` re-renders the frame from its own tracking (re-creation); a :data:`Geometry` renders
-    ``geometry(j, index, tracked_cam)`` and the replaced region also covers the tracked face (a dub).
+    ``geometry(j, index, tracked_cam)`` and the replaced region also covers the tracked face (a dub), with
+    mouth-bank entry ``mouths[j]`` in its open mouth when given (see :meth:`FrameRenderer.render`).
 
     On the CPU, ``workers`` frames are rendered at once, each by its own thread and renderer
     (:meth:`FrameRenderer.twin`) on one PyTorch thread, while the caller consumes (encodes) the previous
@@ -244,7 +302,9 @@ def render_frames(
         return {
             name: renderer.render(frame, k, tracked)
             if geo is None
-            else renderer.render(frame, k, geo(j, k, tracked), tracked)
+            else renderer.render(
+                frame, k, geo(j, k, tracked), tracked, mouth=None if mouths is None else mouths[j]
+            )
             for name, geo in variants.items()
         }
 

@@ -15,6 +15,9 @@ held-out frame ``t`` is re-created several ways and compared with the real frame
 | ``detail_same`` | tracked | moved from frame ``t`` itself (optimistic: the answer's own detail) |
 | ``audio`` | mouth from the held-out audio | none |
 | ``audio_detail`` | mouth from the held-out audio | moved from frame ``s`` |
+| ``teeth`` | tracked | as ``detail_other``, plus the mouth interior from the person's mouth bank |
+| | | (:mod:`renderer.mouths`, built from training frames only) |
+| ``audio_teeth`` | mouth from the held-out audio | as ``audio_detail``, plus the mouth bank's interior |
 | ``blur_fill`` (baseline) | — | the painted region inpainted from its border (OpenCV Telea) |
 | ``retrieval`` (baseline) | — | nearest-mouth training frame, painted region pasted (box-aligned) |
 
@@ -32,7 +35,17 @@ from pathlib import Path
 import numpy as np
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "video"
-VARIANTS = ("render", "detail_other", "detail_same", "audio", "audio_detail", "blur_fill", "retrieval")
+VARIANTS = (
+    "render",
+    "detail_other",
+    "detail_same",
+    "audio",
+    "audio_detail",
+    "teeth",
+    "audio_teeth",
+    "blur_fill",
+    "retrieval",
+)
 OPTIMISTIC = {"detail_same"}
 
 
@@ -113,6 +126,13 @@ def evaluate(
         )
         trained.write_text(json.dumps(numbers, indent=2) + "\n")
     whole = json.loads(trained.read_text())
+    if not (rdir / "mouths.json").exists():  # the person's mouth bank, from training frames only
+        from renderer.mouths import bank_frames, build_mouth_bank, sequence_shapes
+
+        gaps = model.inner_lip_gap(seq.identity, seq.expression)
+        usable = seq.valid & (np.arange(seq.num_frames) < split)
+        chosen = bank_frames(sequence_shapes(model, seq), gaps, usable)
+        build_mouth_bank(video, seq, model, chosen).save(rdir / "mouths")
     expr_audio = _style_and_audio_expressions(video, seq, split, cache)
     test = np.arange(split, seq.num_frames)[::step][:max_frames]
     yaw = np.degrees(np.arctan2(seq.rotation[:, 0, 2], seq.rotation[:, 2, 2]))
@@ -139,8 +159,9 @@ def evaluate(
         return next(iter(frames_at(video, np.array([i]), seq.fps)))
 
     with (
-        FrameRenderer(rdir, model, seq, detail=False) as plain,
-        FrameRenderer(rdir, model, seq, detail=True) as fine,
+        FrameRenderer(rdir, model, seq, detail=False, interiors=False) as plain,
+        FrameRenderer(rdir, model, seq, detail=True, interiors=False) as fine,
+        FrameRenderer(rdir, model, seq, detail=True) as teeth,
         LandmarkDetector() as det,
     ):
         for t in test:
@@ -159,6 +180,8 @@ def evaluate(
             made["detail_same"] = fine.render(real, t, tracked)
             made["audio"] = plain.render(real, t, spoken, tracked)
             made["audio_detail"] = fine.render(real, t, spoken, tracked, source=src)
+            made["teeth"] = teeth.render(real, t, tracked, source=src)
+            made["audio_teeth"] = teeth.render(real, t, spoken, tracked, source=src)
             painted = weight >= 0.5
             made["blur_fill"] = cv2.inpaint(real, painted.astype(np.uint8), 5, cv2.INPAINT_TELEA)
             made["retrieval"] = _retrieval(frame_at, seq, model, t, train_idx, plain.boxes, weight, real)

@@ -33,12 +33,14 @@ def bundle(demo_clip, tmp_path_factory):
 def test_fit_writes_a_complete_bundle(bundle):
     m = json.loads((bundle / "bundle.json").read_text())
     assert m["format"] == "nvp.person_bundle" and m["version"] == 1
-    assert set(m["stages"]) == {"target", "track", "style", "renderer"}
+    assert set(m["stages"]) == {"target", "track", "style", "renderer", "mouths"}
     assert (bundle / "renderer" / "renderer.json").exists() and (bundle / "style.json").exists()
+    # the demo talker opens its mouth: its open-mouth frames make a mouth bank next to the renderer
+    assert m["stages"]["mouths"]["entries"] > 0 and (bundle / "renderer" / "mouths.json").exists()
     assert not (bundle / "renderer" / "checkpoint.pt").exists()
     assert not bundle.with_name("person.partial").exists()
     proc = nvp("info", bundle)
-    assert "mouth-opening model: calibrated" in proc.stdout
+    assert "mouth-opening model: calibrated" in proc.stdout and "mouths: " in proc.stdout
     assert proc.returncode == 0 and "renderer preset: cpu" in proc.stdout, proc.stderr
 
 

@@ -646,3 +646,44 @@ def test_frames_rendered_in_parallel_equal_one_at_a_time_in_order(footage, face_
         for name in variants:
             np.testing.assert_array_equal(m1[name], m2[name])
     assert np.abs(one[0][1]["dub"].astype(int) - one[0][1]["re"]).max() > 0  # the dub moved the mouth
+
+
+def test_an_open_rendered_mouth_shows_the_person_s_own_interior_from_the_bank(footage, face_model, tmp_path):
+    from nvp.geometry import posed
+    from renderer.gl import GLRasterizer
+    from renderer.masks import dilate
+    from renderer.mouths import build_mouth_bank
+    from renderer.render import FrameRenderer
+
+    path, seq = footage
+    cache = build_cache(path, seq, face_model, TINY, np.arange(10), progress=False)
+    cfg = RendererTrainConfig(steps=10, lr=3e-3, init=None, checkpoint_every=10**6, preview_every=10**6)
+    train_renderer(cache, cfg, tmp_path / "r", progress=False, preset=TINY)
+    k = face_model.exp_basis.shape[0]
+    wide = 4.0 * np.eye(k, dtype=np.float32)[np.argmax(face_model.inner_lip_gap(seq.identity, np.eye(k)))]
+    opened = posed(face_model.vertices(seq.identity, wide[None])[0], seq.rotation[5], seq.translation[5])
+    bank = build_mouth_bank(path, seq, face_model, frames=np.array([2, 6]))
+    assert bank.patches.shape == (2, 128, 128, 3) and bank.pixels.shape == (2, face_model.num_vertices, 2)
+    bank.patches[:] = (0, 255, 0)  # a green mouth interior, to see where it lands
+    bank.save(tmp_path / "r" / "mouths")
+    frame = list(iter_frames(path))[5]
+    with (
+        FrameRenderer(tmp_path / "r", face_model, seq, interiors=False) as a,
+        FrameRenderer(tmp_path / "r", face_model, seq) as b,
+    ):
+        assert a.mouths is None and len(b.mouths) == 2
+        tracked = a.tracked(5)
+        plain = a.render(frame, 5, opened, tracked).astype(int)
+        teeth = b.render(frame, 5, opened, tracked, mouth=1).astype(int)
+        np.testing.assert_array_equal(b.render(frame, 5, tracked), a.render(frame, 5, tracked))  # closed
+    with GLRasterizer(SIZE, SIZE) as gl:
+        r = gl.rasterize(opened, face_model.triangles, face_model.uvs, seq.focal, seq.center)
+    inner = torch.isin(
+        r.triangle_id, torch.from_numpy(np.flatnonzero(face_model.triangle_regions["mouth_interior"]))
+    )
+    assert inner.sum() >= 4  # the wide-open mouth shows its interior
+    near = dilate(inner.float()[None, None], 4)[0, 0].numpy() > 0  # a crop pixel is ~2 frame pixels
+    changed = np.abs(teeth - plain).sum(-1) > 0
+    assert changed[inner.numpy()].mean() > 0.9 and not changed[~near].any()  # there and only there
+    green = teeth[inner.numpy()].mean(0)
+    assert green[1] > 200 and green[0] < 60 and green[2] < 60

@@ -165,6 +165,17 @@ def fit(
     from nvp.face_model import default_face_model
     from nvp.person import PersonStyle
 
+    if not builder.done("mouths"):
+        from renderer.mouths import build_mouth_bank
+
+        t0 = _stage("mouth bank")
+        seq = TrackedSequence.load(builder.path("tracked"))
+        bank = build_mouth_bank(builder.path("target"), seq, default_face_model())
+        if bank is not None:
+            bank.save(builder.path("renderer") / "mouths")
+        n = 0 if bank is None else len(bank)
+        builder.mark_done("mouths", entries=n, seconds=round(time.perf_counter() - t0, 2))
+
     style = PersonStyle.load(builder.path("style"))
     shutil.rmtree(builder.work / "cache", ignore_errors=True)
     return builder.publish(

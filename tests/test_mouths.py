@@ -1,0 +1,65 @@
+"""The person's own mouth interiors (renderer.mouths): which frames a bank keeps, which entry a frame gets."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from renderer.mouths import MouthBank, bank_frames, choose_entries, object_frame
+
+
+def test_a_bank_keeps_open_mouths_spread_over_their_shapes():
+    rng = np.random.default_rng(0)
+    t = 400
+    gaps = np.abs(rng.normal(0, 0.2, t))
+    gaps[:200] = 0.02  # half the time closed
+    shapes = rng.normal(0, 0.01, (t, 20, 3)) + gaps[:, None, None] * np.linspace(-1, 1, 20)[None, :, None]
+    valid = np.ones(t, bool)
+    valid[250:260] = False
+    chosen = bank_frames(shapes, gaps, valid, entries=16)
+    assert len(chosen) == 16 and (np.diff(chosen) > 0).all()
+    lo, hi = np.percentile(gaps[valid], [5, 95])
+    assert (gaps[chosen] > lo + 0.25 * (hi - lo)).all() and valid[chosen].all()
+    assert int(np.argmax(gaps * valid)) in chosen  # the widest-open frame, then the farthest shapes
+    assert np.ptp(gaps[chosen]) > 0.5 * np.ptp(gaps[valid & (gaps > lo + 0.25 * (hi - lo))])
+    assert len(bank_frames(shapes, np.full(t, 0.1), valid)) == 0  # the mouth never opens
+    assert len(bank_frames(shapes, gaps, np.zeros(t, bool))) == 0
+
+
+def test_entries_follow_the_nearest_shape_without_flicker():
+    # two entries nearly equally near for 20 frames (noise decides), then entry 2 clearly nearest
+    rng = np.random.default_rng(1)
+    d = np.full((30, 3), 1.0)
+    d[:20, 0] = 0.10 + rng.normal(0, 0.005, 20)
+    d[:20, 1] = 0.10 + rng.normal(0, 0.005, 20)
+    d[20:, 2] = 0.0
+    nearest = d.argmin(1)
+    assert (np.diff(nearest[:20]) != 0).sum() >= 5  # per-frame nearest flickers
+    path = choose_entries(d, switch=0.05)
+    assert len(set(path[:20])) == 1 and (path[20:] == 2).all()
+    np.testing.assert_array_equal(choose_entries(d, switch=0.0), nearest)
+
+
+def test_object_frame_undoes_the_pose():
+    from nvp.geometry import posed
+
+    rng = np.random.default_rng(2)
+    x = rng.normal(size=(5, 3))
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    r, t = q * np.sign(np.linalg.det(q)), np.array([1.0, 2.0, 50.0])  # a proper rotation
+    np.testing.assert_allclose(object_frame(posed(x, r, t), r, t), x, atol=1e-9)
+
+
+def test_a_bank_saves_and_loads(tmp_path):
+    rng = np.random.default_rng(3)
+    bank = MouthBank(
+        frames=np.array([3, 9]),
+        patches=rng.integers(0, 255, (2, 8, 8, 3), dtype=np.uint8),
+        pixels=rng.normal(size=(2, 468, 2)).astype(np.float32),
+        shapes=rng.normal(size=(2, 20, 3)).astype(np.float32),
+    )
+    bank.save(tmp_path / "mouths")
+    back = MouthBank.load(tmp_path / "mouths.json")
+    for k in ("frames", "patches", "pixels", "shapes"):
+        np.testing.assert_array_equal(getattr(back, k), getattr(bank, k))
+    d = back.distances(bank.shapes)
+    assert d.shape == (2, 2) and np.allclose(np.diag(d), 0) and d[0, 1] == d[1, 0] > 0
