@@ -143,6 +143,15 @@ def choose_entries(distances: np.ndarray, switch: float = SWITCH_CM) -> np.ndarr
     return path
 
 
+def next_entry(current: int | None, distances: np.ndarray, switch: float = SWITCH_CM) -> int:
+    """The entry for the next frame of a stream (``distances`` ``(N,)``, its shape's to every entry) when
+    the future is unknown: the nearest one, unless ``current`` is within ``switch`` of it."""
+    best = int(np.argmin(distances))
+    if current is not None and distances[current] <= distances[best] + switch:
+        return current
+    return best
+
+
 def sequence_shapes(
     model: FaceModel, seq: TrackedSequence, expression: np.ndarray | None = None
 ) -> np.ndarray:

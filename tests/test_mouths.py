@@ -63,3 +63,11 @@ def test_a_bank_saves_and_loads(tmp_path):
         np.testing.assert_array_equal(getattr(back, k), getattr(bank, k))
     d = back.distances(bank.shapes)
     assert d.shape == (2, 2) and np.allclose(np.diag(d), 0) and d[0, 1] == d[1, 0] > 0
+
+
+def test_a_stream_keeps_its_entry_until_another_is_clearly_nearer():
+    from renderer.mouths import next_entry
+
+    assert next_entry(None, np.array([0.3, 0.1, 0.2])) == 1
+    assert next_entry(2, np.array([0.3, 0.1, 0.12]), switch=0.05) == 2  # within the switch cost: kept
+    assert next_entry(2, np.array([0.3, 0.1, 0.2]), switch=0.05) == 1

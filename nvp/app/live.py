@@ -143,6 +143,7 @@ def live(
     from nvp.provenance import synthetic_mark
     from nvp.stream import LOOKAHEAD_S, ExpressionStream
     from nvp.threads import ThreadGovernor
+    from renderer.mouths import next_entry, sequence_shapes
     from renderer.render import FrameRenderer
 
     if output is None and raw_out is None:
@@ -185,9 +186,10 @@ def live(
         else _NoWriter() as vw,
     ):
         governor = ThreadGovernor() if str(device) == "cpu" else None
+        entry = None  # the mouth bank entry in use
 
         def emit(expressions: np.ndarray) -> None:
-            nonlocal dropped, last, next_status
+            nonlocal dropped, last, next_status, entry
             for e in expressions:
                 if governor is not None:
                     governor.update()
@@ -198,7 +200,11 @@ def live(
                     dropped += 1
                 else:
                     tracked = fr.tracked(k)
-                    last = fr.render(frame, k, dubbed_vertices(model, seq, k, e, weights, tracked), tracked)
+                    if fr.mouths is not None:  # the person's own teeth, without flicker
+                        shape = sequence_shapes(model, seq, e[None])
+                        entry = next_entry(entry, fr.mouths.distances(shape)[0])
+                    spoken = dubbed_vertices(model, seq, k, e, weights, tracked)
+                    last = fr.render(frame, k, spoken, tracked, mouth=entry)
                 vw.write(last)
                 if raw_out is not None:
                     raw_out.write(last.tobytes())
