@@ -26,9 +26,10 @@ from nvp.face_model import FaceModel
 from nvp.tracked import TrackedSequence
 
 FORMAT_VERSION = 1
-PATCH = 128
-"""Side of a stored mouth patch (pixels); the patch spans 1.6 mouth widths, so a mouth up to 80 px wide
-keeps its footage resolution."""
+PATCH = (64, 256)
+"""Smallest and largest side of the stored mouth patches (pixels): a patch spans 1.6 mouth widths and keeps
+the footage's resolution up to a 160 px wide mouth (0.6 MB per entry at 256²), beyond that it is scaled
+down."""
 ENTRIES = 48
 """Most open-mouth frames a bank keeps."""
 SWITCH_CM = 0.05
@@ -70,7 +71,7 @@ class MouthBank:
 
     def save(self, path: Path) -> Path:
         arrays = {k: getattr(self, k) for k in ("frames", "patches", "pixels", "shapes")}
-        return save_artifact(path, "mouth_bank", FORMAT_VERSION, arrays, {"patch": PATCH}, compress=True)
+        return save_artifact(path, "mouth_bank", FORMAT_VERSION, arrays, {}, compress=True)
 
     @classmethod
     def load(cls, path: Path) -> MouthBank:
@@ -162,10 +163,11 @@ def sequence_shapes(
 
 
 def build_mouth_bank(
-    video: Path, seq: TrackedSequence, model: FaceModel, frames: np.ndarray | None = None, patch: int = PATCH
+    video: Path, seq: TrackedSequence, model: FaceModel, frames: np.ndarray | None = None
 ) -> MouthBank | None:
     """Decode ``video`` and keep the mouth regions of ``frames`` (default :func:`bank_frames` over the
-    whole tracked sequence); None when the mouth never opens."""
+    whole tracked sequence), at the footage's resolution within :data:`PATCH`; None when the mouth never
+    opens."""
     from nvp.media import frames_at
     from renderer.crop import cut
 
@@ -182,6 +184,7 @@ def build_mouth_bank(
     lo, hi = px[:, lips].min(1), px[:, lips].max(1)
     side = 1.6 * (hi[:, 0] - lo[:, 0])
     boxes = np.concatenate([(lo + hi) / 2, side[:, None]], 1)  # (cx, cy, side), renderer.crop's boxes
+    patch = int(np.clip(16 * np.ceil(np.median(side) / 16), *PATCH))
     patches = np.empty((len(frames), patch, patch, 3), np.uint8)
     for i, img in enumerate(frames_at(video, frames, seq.fps)):
         t = torch.from_numpy(img).permute(2, 0, 1)[None].float()

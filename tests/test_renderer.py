@@ -663,7 +663,9 @@ def test_an_open_rendered_mouth_shows_the_person_s_own_interior_from_the_bank(fo
     wide = 4.0 * np.eye(k, dtype=np.float32)[np.argmax(face_model.inner_lip_gap(seq.identity, np.eye(k)))]
     opened = posed(face_model.vertices(seq.identity, wide[None])[0], seq.rotation[5], seq.translation[5])
     bank = build_mouth_bank(path, seq, face_model, frames=np.array([2, 6]))
-    assert bank.patches.shape == (2, 128, 128, 3) and bank.pixels.shape == (2, face_model.num_vertices, 2)
+    assert bank.patches.shape == (2, 64, 64, 3) and bank.pixels.shape == (2, face_model.num_vertices, 2)
+    lips = face_model.vertex_regions["lips"]  # the lips lie inside their patch, 1.6 mouth widths across
+    assert 0.15 * 64 < bank.pixels[:, lips, 0].min() and bank.pixels[:, lips, 0].max() < 0.85 * 64
     bank.patches[:] = (0, 255, 0)  # a green mouth interior, to see where it lands
     bank.save(tmp_path / "r" / "mouths")
     frame = list(iter_frames(path))[5]
