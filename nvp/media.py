@@ -411,20 +411,24 @@ def frames_at(
     path: str | os.PathLike[str], indices: np.ndarray, fps: float, chunk: int = 48
 ) -> Iterator[np.ndarray]:
     """Yield the frames of ``path`` (on the ``fps`` grid) at ``indices`` in that order (any order, e.g. a
-    ping-pong schedule), decoding at most the source frames spanned by ``chunk`` consecutive indices at a
-    time (bounded memory).
+    ping-pong schedule, or a few frames spread over a long video), decoding the source frames spanned by
+    ``chunk`` consecutive indices at a time and keeping only the ones asked for (memory: at most ``chunk``
+    frames).
 
     Raises:
         MediaError: the file ends before an index.
     """
     for c0 in range(0, len(indices), chunk):
-        part = indices[c0 : c0 + chunk]
-        lo, hi = int(part.min()), int(part.max())
-        frames = list(iter_frames(path, fps=fps, start_frame=lo, max_frames=hi - lo + 1))
-        if len(frames) < hi - lo + 1:
-            raise MediaError(f"{path}: expected frames {lo}..{hi}, the file ended after {lo + len(frames)}")
+        part = [int(i) for i in indices[c0 : c0 + chunk]]
+        lo, hi = min(part), max(part)
+        wanted, kept, n = set(part), {}, 0
+        for n, frame in enumerate(iter_frames(path, fps=fps, start_frame=lo, max_frames=hi - lo + 1), 1):
+            if lo + n - 1 in wanted:
+                kept[lo + n - 1] = frame
+        if n < hi - lo + 1:
+            raise MediaError(f"{path}: expected frames {lo}..{hi}, the file ended after {lo + n}")
         for i in part:
-            yield frames[int(i) - lo]
+            yield kept[i]
 
 
 def _iter_grid(probe: _Probe, rate: Fraction, start: int, end: int) -> Iterator[np.ndarray]:

@@ -13,7 +13,7 @@ import soundfile as sf
 
 from nvp import media
 from nvp.errors import MediaError
-from nvp.media import VideoWriter, has_audio, iter_frames, probe_video, read_audio, rotate_frame
+from nvp.media import VideoWriter, frames_at, has_audio, iter_frames, probe_video, read_audio, rotate_frame
 
 # ----------------------------------------------------------------------------------------------- helpers
 
@@ -125,6 +125,38 @@ def test_start_frame_and_max_frames(clip: Path) -> None:
     assert len(part) == 3
     assert np.abs(part[0].astype(int) - pattern(7)).mean() < 3.0
     assert list(iter_frames(clip, start_frame=10)) == []
+
+
+def test_frames_at_any_order_keeps_only_the_frames_asked_for(clip: Path, monkeypatch) -> None:
+    from nvp import media
+    from nvp.errors import MediaError
+
+    every = list(iter_frames(clip))
+    order = np.array([9, 0, 4, 4, 2, 9, 1])
+    got = list(frames_at(clip, order, 25.0, chunk=4))
+    assert len(got) == len(order)
+    for i, f in zip(order, got, strict=True):
+        np.testing.assert_array_equal(f, every[i])
+    # a few frames spread over a long video: all between them are decoded, only those asked for are held
+    import gc
+    import weakref
+
+    decoded, real = [], media.iter_frames
+
+    def watched(*args, **kwargs):
+        for frame in real(*args, **kwargs):
+            decoded.append(weakref.ref(frame))
+            yield frame
+
+    monkeypatch.setattr(media, "iter_frames", watched)
+    spread = frames_at(clip, np.array([0, 9]), 25.0)
+    first = next(spread)
+    gc.collect()
+    assert len(decoded) == 10 and sum(r() is not None for r in decoded) == 2
+    np.testing.assert_array_equal(first, every[0])
+    np.testing.assert_array_equal(next(spread), every[9])
+    with pytest.raises(MediaError, match="ended"):
+        list(frames_at(clip, np.array([3, 12]), 25.0))
 
 
 def test_seek_with_short_gop_matches_full_decode(tmp_path: Path) -> None:
