@@ -69,6 +69,12 @@ def posed(vertices: np.ndarray, rotation: np.ndarray, translation: np.ndarray) -
     return np.einsum("...ij,...vj->...vi", rotation, vertices) + translation[..., None, :]
 
 
+def unposed(points: np.ndarray, rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    """Object-frame points of camera-frame ``points`` ``(..., V, 3)`` posed by one ``rotation`` ``(3, 3)``
+    and ``translation`` ``(3,)``: the inverse of :func:`posed`."""
+    return (points - translation) @ rotation
+
+
 def pinhole(points: np.ndarray, focal: float, center: np.ndarray) -> np.ndarray:
     """Pixels ``(..., V, 2)`` of camera-frame ``points`` ``(..., V, 3)`` (numpy twin of :func:`project`)."""
     return focal * points[..., :2] / np.maximum(points[..., 2:3], 1e-6) + center

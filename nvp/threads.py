@@ -7,7 +7,8 @@ other (OpenMP's busy waiting) and ``nvp dub`` falls from 21.6 to 6.5 frames/s, w
 :class:`ThreadGovernor` watches the cores' busy time (``/proc/stat``) minus this process's own CPU time and
 sets ``torch.set_num_threads`` to the free cores, every few seconds, so a long job adapts when the load
 changes. A fixed count (``NVP_THREADS`` or ``OMP_NUM_THREADS`` in the environment, or ``threads``) turns
-the governor off.
+the governor off (renderer training and ``nvp live`` use it). ``nvp dub`` and ``nvp eval`` instead render
+:func:`frame_workers` frames at once on one thread each (see :func:`renderer.render.render_frames`).
 """
 
 from __future__ import annotations

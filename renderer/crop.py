@@ -147,7 +147,7 @@ def paste_region(
     detail: tuple[torch.Tensor, torch.Tensor] | None = None,
     moved: tuple[torch.Tensor, torch.Tensor, np.ndarray, torch.Tensor, torch.Tensor] | None = None,
     paint: torch.Tensor | None = None,
-    interior: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
+    interior: tuple[torch.Tensor, torch.Tensor, torch.Tensor, tuple[int, int]] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, tuple[slice, slice]] | None:
     """:func:`paste` for the frame pixels under the box only: the blended pixels ``(C, h, w)``, their blend
     weight ``(h, w)`` and the ``(rows, columns)`` slices of the frame they replace; None when the box lies

@@ -42,12 +42,6 @@ def interior_vertices(model: FaceModel) -> np.ndarray:
     return np.unique(model.triangles[model.triangle_regions["mouth_interior"]])
 
 
-def object_frame(vertices_cam: np.ndarray, rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
-    """Object-frame points of camera-frame ``vertices_cam`` ``(..., V, 3)`` posed by ``rotation``
-    ``(3, 3)`` and ``translation`` ``(3,)`` (the inverse of :func:`nvp.geometry.posed` for one pose)."""
-    return (vertices_cam - translation) @ rotation
-
-
 @dataclass
 class MouthBank:
     """Open-mouth regions of a person's footage.

@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from nvp.face_model import FaceModel
+from nvp.geometry import unposed
 from nvp.tracked import TrackedSequence
 from renderer.crop import box_slices, cut, feather, paste_region, region_weight
 from renderer.data import (
@@ -192,8 +193,6 @@ class FrameRenderer:
         ``(3, P, P)``, and over the crop window around the interior, the patch pixel at each crop pixel
         ``(h, w, 2)``, the interior mask ``(h, w)`` and the window's first row and column; None without a
         bank or when no interior shows."""
-        from renderer.mouths import object_frame
-
         if self.mouths is None:
             return None
         inside = geo.mouth[0, 0]
@@ -205,8 +204,8 @@ class FrameRenderer:
         r0, r1 = max(int(rows[0]) - 1, 0), min(int(rows[-1]) + 2, size)
         c0, c1 = max(int(cols[0]) - 1, 0), min(int(cols[-1]) + 2, size)
         if mouth is None:
-            k = index
-            shape = object_frame(vertices_cam[self._inner], self.seq.rotation[k], self.seq.translation[k])
+            pose = self.seq.rotation[index], self.seq.translation[index]
+            shape = unposed(vertices_cam[self._inner], *pose)
             mouth = int(np.argmin(self.mouths.distances(shape[None].astype(np.float32))[0]))
         tri, bary = geo.triangle_id[r0:r1, c0:c1], geo.barycentric[r0:r1, c0:c1]
         pos = self.mouths.positions(mouth, tri, bary, self._triangles)

@@ -43,3 +43,13 @@ def test_project_follows_opencv_convention():
 def test_skew_is_the_cross_product():
     a, b = torch.randn(5, 3), torch.randn(5, 3)
     torch.testing.assert_close((skew(a) @ b[..., None])[..., 0], torch.linalg.cross(a, b))
+
+
+def test_unposed_undoes_the_pose():
+    from nvp.geometry import posed, unposed
+
+    rng = np.random.default_rng(2)
+    x = rng.normal(size=(5, 3))
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    r, t = q * np.sign(np.linalg.det(q)), np.array([1.0, 2.0, 50.0])  # a proper rotation
+    np.testing.assert_allclose(unposed(posed(x, r, t), r, t), x, atol=1e-9)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from renderer.mouths import MouthBank, bank_frames, choose_entries, object_frame
+from renderer.mouths import MouthBank, bank_frames, choose_entries
 
 
 def test_a_bank_keeps_open_mouths_spread_over_their_shapes():
@@ -37,16 +37,6 @@ def test_entries_follow_the_nearest_shape_without_flicker():
     path = choose_entries(d, switch=0.05)
     assert len(set(path[:20])) == 1 and (path[20:] == 2).all()
     np.testing.assert_array_equal(choose_entries(d, switch=0.0), nearest)
-
-
-def test_object_frame_undoes_the_pose():
-    from nvp.geometry import posed
-
-    rng = np.random.default_rng(2)
-    x = rng.normal(size=(5, 3))
-    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
-    r, t = q * np.sign(np.linalg.det(q)), np.array([1.0, 2.0, 50.0])  # a proper rotation
-    np.testing.assert_allclose(object_frame(posed(x, r, t), r, t), x, atol=1e-9)
 
 
 def test_a_bank_saves_and_loads(tmp_path):
