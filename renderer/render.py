@@ -67,7 +67,7 @@ class FrameRenderer:
         bank = Path(renderer_dir) / "mouths.json"
         self.mouths = MouthBank.load(bank) if interiors and bank.exists() else None
         if self.mouths is not None:
-            self._patches = torch.from_numpy(self.mouths.patches).permute(0, 3, 1, 2).float()
+            self._patches = torch.from_numpy(self.mouths.patches).permute(0, 3, 1, 2)  # uint8
             self._inner = interior_vertices(model)
         self.bf16 = fast_bf16(device) if bf16 is None else bf16
         self.model, self.seq, self.device = model, seq, device
@@ -209,7 +209,7 @@ class FrameRenderer:
             mouth = int(np.argmin(self.mouths.distances(shape[None].astype(np.float32))[0]))
         tri, bary = geo.triangle_id[r0:r1, c0:c1], geo.barycentric[r0:r1, c0:c1]
         pos = self.mouths.positions(mouth, tri, bary, self._triangles)
-        return self._patches[mouth], pos, inside[r0:r1, c0:c1], (r0, c0)
+        return self._patches[mouth].float(), pos, inside[r0:r1, c0:c1], (r0, c0)
 
     def _moved(
         self,

@@ -127,12 +127,11 @@ def evaluate(
         trained.write_text(json.dumps(numbers, indent=2) + "\n")
     whole = json.loads(trained.read_text())
     if not (rdir / "mouths.json").exists():  # the person's mouth bank, from training frames only
-        from renderer.mouths import bank_frames, build_mouth_bank, sequence_shapes
+        from renderer.mouths import build_mouth_bank
 
-        gaps = model.inner_lip_gap(seq.identity, seq.expression)
-        usable = seq.valid & (np.arange(seq.num_frames) < split)
-        chosen = bank_frames(sequence_shapes(model, seq), gaps, usable)
-        build_mouth_bank(video, seq, model, chosen).save(rdir / "mouths")
+        bank = build_mouth_bank(video, seq.head(split), model)
+        if bank is not None:  # else the teeth variants render without one
+            bank.save(rdir / "mouths")
     expr_audio = _style_and_audio_expressions(video, seq, split, cache)
     test = np.arange(split, seq.num_frames)[::step][:max_frames]
     yaw = np.degrees(np.arctan2(seq.rotation[:, 0, 2], seq.rotation[:, 2, 2]))
