@@ -74,7 +74,7 @@ class Rasterizer:
         self.model, self.size, self.grow = model, size, grow
         self._gl = GLRasterizer(size, size)
         self._out = empty_output(size, size)
-        self._mouth_tris = torch.from_numpy(np.flatnonzero(model.triangle_regions["mouth_interior"]))
+        self._is_mouth = torch.from_numpy(model.triangle_regions["mouth_interior"])  # (F,) bool
         self._tri_weights = torch.from_numpy(model.mouth_weights()[model.triangles])  # (F, 3)
 
     def close(self) -> None:
@@ -88,7 +88,8 @@ class Rasterizer:
         r = self._gl.rasterize(
             vertices_cam.astype(np.float32), self.model.triangles, self.model.uvs, f, c, out=self._out
         )
-        mouth = torch.isin(r.triangle_id, self._mouth_tris)
+        # a lookup, not torch.isin (0.9 ms per call on a 192² crop; this 0.1 ms)
+        mouth = self._is_mouth[r.triangle_id.clamp_min(0)] & (r.triangle_id >= 0)
         mask = r.mask.float()[None, None]
         lower = (self._tri_weights[r.triangle_id.clamp_min(0)] * r.barycentric).sum(-1) * r.mask
         return FrameGeometry(

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from renderer.raster_ref import rasterize_reference
-from renderer.warp import sample_pixels, source_positions, surface_points
+from renderer.warp import sample_pixels, source_positions, stillness, surface_points, transfer_band
 
 
 def test_surface_points_interpolate_vertex_values():
@@ -24,6 +24,41 @@ def test_sample_pixels_reads_pixel_centres_and_interpolates():
     img = torch.arange(12.0).reshape(1, 3, 4)  # value = 4 * row + col
     pos = torch.tensor([[0.5, 0.5], [3.5, 2.5], [1.0, 0.5], [2.5, 1.0]])  # (x, y)
     np.testing.assert_allclose(sample_pixels(img, pos)[0], [0.0, 11.0, 0.5, 4.0], atol=1e-5)
+
+
+def test_stillness_is_one_where_nothing_moved_and_falls_linearly_to_zero():
+    src = np.zeros((4, 3))
+    tgt = np.array([[0, 0, 0], [0.05, 0, 0], [0, 0.1, 0], [0.5, 0, 0]])
+    np.testing.assert_allclose(stillness(tgt, src, 0.1), [1.0, 0.5, 0.0, 0.0], atol=1e-6)
+
+
+def _stripes(size: int = 48, shift: int = 0) -> torch.Tensor:
+    """(3, size, size): a smooth ramp plus one-pixel stripes (fine detail)."""
+    x = torch.arange(size, dtype=torch.float32)
+    fine = ((x + shift) % 2) * 0.2
+    img = x[None, :] / size * 0.5 + fine[None, :] + torch.zeros(size, 1)
+    return img.expand(3, size, size).clone()
+
+
+def test_transfer_band_takes_fine_detail_from_the_trusted_source_and_keeps_the_render_elsewhere():
+    from kornia.filters import gaussian_blur2d
+
+    real = _stripes()
+    soft = gaussian_blur2d(real[None], (9, 9), (2.0, 2.0), border_type="replicate")  # a network's render
+    source = real + 0.3  # the same detail under another exposure: only its fine band may be used
+    weight = torch.zeros(48, 48)
+    weight[:, :24] = 1
+    out = transfer_band(soft, source, weight, sigma=2.0)[0]
+    inner = (slice(4, 44), slice(2, 16))
+    # deep inside the trusted part: the real fine stripes are back, the source's brightness is not
+    assert float((out - real)[(0, *inner)].abs().mean()) < 0.25 * float(
+        (soft[0] - real)[(0, *inner)].abs().mean()
+    )
+    assert float((out - soft[0])[(0, *inner)].mean().abs()) < 0.02
+    # untrusted part (beyond the fade): exactly the render
+    torch.testing.assert_close(out[:, :, 30:], soft[0, :, :, 30:])
+    # no weight at all: the render unchanged
+    torch.testing.assert_close(transfer_band(soft, source, torch.zeros(48, 48), 2.0), soft)
 
 
 def quad(z: float = 10.0, shift: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
