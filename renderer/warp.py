@@ -111,9 +111,9 @@ def smooth(x: torch.Tensor, sigma: float) -> torch.Tensor:
 def transfer_band(
     render: torch.Tensor, moved: torch.Tensor, weight: torch.Tensor, sigma: float
 ) -> torch.Tensor:
-    """``render`` ``(1, C, H, W)`` with its detail finer than a Gaussian of ``sigma`` pixels replaced by that
-    of ``moved`` ``(C, H, W)`` (a source frame moved onto the same surface) where ``weight`` ``(H, W)`` in
-    [0, 1] says the moved pixels are trustworthy.
+    """``render`` ``(1, C, H, W)`` with its detail finer than about ``sigma`` pixels (:func:`smooth`)
+    replaced by that of ``moved`` ``(C, H, W)`` (a source frame moved onto the same surface) where
+    ``weight`` ``(H, W)`` in [0, 1] says the moved pixels are trustworthy.
 
     The networks render shape and shading well but soften the skin's detail even at the crop's own
     resolution; the footage has it. ``moved``'s low frequencies are taken by normalised convolution (only
