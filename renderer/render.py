@@ -319,6 +319,7 @@ def render_frames(
     desc: str = "render",
     workers: int | None = None,
     mouths: Sequence[int] | None = None,
+    sources: Callable[[int], tuple[np.ndarray, int, np.ndarray]] | None = None,
 ) -> Iterator[tuple[np.ndarray, dict[str, np.ndarray]]]:
     """The one render loop: footage ``frames`` (``(H, W, 3)`` uint8, one per entry of ``indices``, the
     footage frame each one is) in; for each, in order, the footage frame and its renders
@@ -328,6 +329,8 @@ def render_frames(
     A variant ``None`` re-renders the frame from its own tracking (re-creation); a :data:`Geometry` renders
     ``geometry(j, index, tracked_cam)`` and the replaced region also covers the tracked face (a dub), with
     mouth-bank entry ``mouths[j]`` in its open mouth when given (see :meth:`FrameRenderer.render`).
+    ``sources(j)``: the ``source`` of frame ``j``'s fine detail (default: the footage frame itself), e.g. an
+    evaluation that must not move the real frame's own detail onto its re-creation.
 
     On the CPU, ``workers`` frames are rendered at once, each by its own thread and renderer
     (:meth:`FrameRenderer.twin`) on one PyTorch thread, while the caller consumes (encodes) the previous
@@ -345,11 +348,17 @@ def render_frames(
 
     def job(renderer: FrameRenderer, j: int, k: int, frame: np.ndarray) -> dict[str, np.ndarray]:
         tracked = renderer.tracked(k)
+        source = None if sources is None else sources(j)
         return {
-            name: renderer.render(frame, k, tracked)
+            name: renderer.render(frame, k, tracked, source=source)
             if geo is None
             else renderer.render(
-                frame, k, geo(j, k, tracked), tracked, mouth=None if mouths is None else mouths[j]
+                frame,
+                k,
+                geo(j, k, tracked),
+                tracked,
+                source=source,
+                mouth=None if mouths is None else mouths[j],
             )
             for name, geo in variants.items()
         }

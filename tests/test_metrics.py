@@ -168,3 +168,24 @@ def test_eval_lip_metrics_measure_output_and_real_alike():
     assert m["pause_motion_ratio_real"] == 0.0 and m["pause_motion_ratio"] == pytest.approx(1.0)
     assert m["opening_range_ratio"] == pytest.approx(1.0)
     assert m["closure_recall"] == 0.0
+
+
+def test_eval_takes_each_held_out_frames_detail_from_another_frame_a_second_away():
+    from types import SimpleNamespace
+
+    from nvp.app.evaluate import detail_sources
+
+    t = 200
+    yaw = np.radians(np.r_[np.zeros(150), np.linspace(0, 20, 50)])  # the head turns in the last 2 s
+    rot = np.zeros((t, 3, 3))
+    rot[:, 0, 0] = rot[:, 2, 2] = np.cos(yaw)
+    rot[:, 0, 2], rot[:, 2, 0] = np.sin(yaw), -np.sin(yaw)
+    rot[:, 1, 1] = 1
+    seq = SimpleNamespace(rotation=rot, fps=25.0)
+    held = np.arange(100, 200)
+    src = detail_sources(seq, held, count=8)
+    assert len(np.unique(src)) <= 8 and set(src) <= set(held.tolist())
+    assert (np.abs(src - held) >= 25).all()  # never the frame itself or its neighbours
+    assert src[-1] >= 150  # a turned head takes its detail from a turned frame
+    short = np.arange(100, 120)  # under a second held out: the farthest frame
+    assert (np.abs(detail_sources(seq, short, count=8) - short) >= 9).all()

@@ -7,6 +7,10 @@ Two re-creations of every held-out frame, both rendered into that real frame wit
 - *audio*: mouth and jaw predicted from the tail's own audio by the person's style (what ``nvp dub``
   does; audio-to-expression plus rendering error), eyes and brows from tracking.
 
+Both take the footage's fine detail from another held-out frame at least a second away
+(:func:`detail_sources`): a dub moves the detail of the footage frame it replaces, and moving the real
+frame's own detail back onto its re-creation would compare it with itself.
+
 Metrics per frame and summarised: PSNR / SSIM on the full frame and on the stabilised face crop;
 mediapipe run on real and generated frames: lip landmark distance / interocular distance (the paper's
 metric), lip-closure precision / recall / F1 (inner-lip gap below the real video's closed level), the
@@ -130,6 +134,31 @@ def _lip_metrics(real: np.ndarray, gen: np.ndarray, found: np.ndarray, groups: d
     }
 
 
+DETAIL_SOURCES = 16
+"""Held-out frames (evenly spread) that the re-creations take their fine detail from (see
+:func:`detail_sources`; at most this many decoded frames are held)."""
+
+
+def detail_sources(seq, indices: np.ndarray, count: int = DETAIL_SOURCES) -> np.ndarray:
+    """For each held-out frame of ``indices`` ``(N,)``, the held-out frame its re-creation takes the
+    footage's fine detail from: among ``count`` frames spread over ``indices``, the one with the nearest head
+    pose at least a second away (the farthest when none is). A dub moves the detail of the footage frame it
+    replaces; a re-creation moving its own real frame's detail back would be measured against itself."""
+    candidates = indices[np.linspace(0, len(indices) - 1, min(count, len(indices))).round().astype(int)]
+    rot = seq.rotation
+    yaw = np.degrees(np.arctan2(rot[:, 0, 2], rot[:, 2, 2]))
+    pitch = np.degrees(np.arctan2(-rot[:, 1, 2], rot[:, 2, 2]))
+    out = np.empty(len(indices), np.int64)
+    for j, t in enumerate(indices):
+        gap = np.abs(candidates - t)
+        far = candidates[gap >= seq.fps]
+        if len(far) == 0:
+            out[j] = candidates[np.argmax(gap)]
+            continue
+        out[j] = far[np.argmin(np.hypot(yaw[far] - yaw[t], pitch[far] - pitch[t]))]
+    return out
+
+
 def evaluate_video(
     video: str | Path, out_dir: str | Path, cfg: EvalConfig = EvalConfig(), progress: bool = True
 ) -> dict:
@@ -138,7 +167,7 @@ def evaluate_video(
     from nvp.app.fit import FitConfig, fit
     from nvp.audio2exp import default_audio2exp
     from nvp.face_model import default_face_model
-    from nvp.media import VideoWriter, audio_rate, iter_frames, probe_video, read_audio
+    from nvp.media import VideoWriter, audio_rate, frames_at, iter_frames, probe_video, read_audio
     from nvp.metrics import psnr, ssim
     from nvp.person import PersonStyle, predict_expressions
     from nvp.provenance import synthetic_mark
@@ -199,13 +228,22 @@ def evaluate_video(
     def spoken(j: int, t: int, tracked: np.ndarray) -> np.ndarray:
         return dubbed_vertices(model, seq, t, expr_audio[j], weights, tracked)
 
+    indices = np.arange(split, split + n_test)
+    chosen = detail_sources(seq, indices)
+    pool = dict(zip(np.unique(chosen).tolist(), frames_at(video, np.unique(chosen), seq.fps), strict=True))
     t_render, t_other = time.perf_counter(), 0.0  # render time = loop time - measuring time
     try:
         with FrameRenderer(bundle.path("renderer"), model, seq, cfg.device) as fr:
             frames = iter_frames(video, fps=seq.fps, start_frame=split, max_frames=n_test)
-            indices = np.arange(split, split + n_test)
             variants = {"visual": None, "audio": spoken}
-            for j, (frame, made) in enumerate(render_frames(fr, frames, indices, variants, progress, "eval")):
+            tracked_at = {i: fr.tracked(i) for i in pool}
+
+            def source(j: int) -> tuple[np.ndarray, int, np.ndarray]:
+                i = int(chosen[j])
+                return pool[i], i, tracked_at[i]
+
+            made_frames = render_frames(fr, frames, indices, variants, progress, "eval", sources=source)
+            for j, (frame, made) in enumerate(made_frames):
                 t_measure = time.perf_counter()
                 ys, xs = box_slices(fr.boxes[split + j], seq.height, seq.width)
                 for k, m in made.items():
@@ -246,6 +284,7 @@ def evaluate_video(
         "fit_minutes": round(t_fit / 60, 1),
         "render_fps": round(2 * n_test / t_render, 2),
         "syncnet": "skipped: no SyncNet weights ship with nvp (LSE-C / LSE-D need them)",
+        "detail_source": "another held-out frame >= 1 s away, nearest head pose",
     }
     for k in ("visual", "audio"):
         found = has["real"] & has[k]
