@@ -73,16 +73,6 @@ def laplacian_energy(img: np.ndarray, box: Box) -> float:
     return float(np.mean(np.abs(lap[y0:y1, x0:x1])))
 
 
-def sharpness_ratios(fake: np.ndarray, real: np.ndarray, box: Box) -> dict[str, float]:
-    """High-frequency energy and Laplacian ratios of ``fake`` to ``real`` in ``box`` (1.0 = as sharp as
-    the footage; below 1 = smoother; above 1 = noisier or over-sharpened)."""
-    hf_r, lap_r = high_frequency_energy(real, box), laplacian_energy(real, box)
-    return {
-        "hf_ratio": high_frequency_energy(fake, box) / hf_r if hf_r > 0 else float("nan"),
-        "laplacian_ratio": laplacian_energy(fake, box) / lap_r if lap_r > 0 else float("nan"),
-    }
-
-
 def border_band(weight: np.ndarray, width: int = 3) -> np.ndarray:
     """``(H, W)`` bool band of ``width`` pixels on each side of the painted region's border (weight 0.5)."""
     import cv2
