@@ -189,3 +189,15 @@ def test_eval_takes_each_held_out_frames_detail_from_another_frame_a_second_away
     assert src[-1] >= 150  # a turned head takes its detail from a turned frame
     short = np.arange(100, 120)  # under a second held out: the farthest frame
     assert (np.abs(detail_sources(seq, short, count=8) - short) >= 9).all()
+
+
+def test_eval_mouth_box_summary_pools_detail_and_skips_frames_without_a_face():
+    from nvp.app.evaluate import mouth_box_summary
+
+    real = np.array([[np.inf, 4.0, 2.0], [np.inf, 16.0, 4.0], [np.nan] * 3])
+    made = np.array([[30.0, 2.0, 1.0], [np.inf, 10.0, 3.0], [np.nan] * 3])
+    out = mouth_box_summary(made, real)
+    assert out["psnr_mouth"] == 30.0  # identical frames (inf) and faceless ones left out of the mean
+    assert out["hf_ratio_mouth"] == pytest.approx(12 / 20)  # pooled, not the mean of 0.5 and 0.625
+    assert out["laplacian_ratio_mouth"] == pytest.approx(4 / 6)
+    assert np.isnan(mouth_box_summary(made[2:], real[2:])["hf_ratio_mouth"])
