@@ -197,7 +197,6 @@ class FrameRenderer:
                 kept = self._still_background(background, tri >= 0, still_px)
                 shown = torch.where(background, crop[0, :, rows, cols], shown)
                 trust = torch.where(background, kept, trust)
-                keep = keep.clone()
                 keep[..., rows, cols] += paint[..., rows, cols] * kept
             inside = transfer_band(inside, shown, trust, BAND_SIGMA)
         final = crop.to(inside).clone()  # outside the window the crop itself (its paste weight is 0)

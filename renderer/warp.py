@@ -62,8 +62,10 @@ def source_positions(
         ``(S, S, 2)`` source-frame pixel positions and ``(S, S)`` float32 validity (1 = the surface point is
         on a usable triangle and visible in the source).
     """
-    pos = surface_points(triangle_id, barycentric, triangles, source_pixels)
-    z = surface_points(triangle_id, barycentric, triangles, source_depth[:, None])[..., 0]
+    # pixel position and depth in one pass over the fragments (it runs for every rendered frame)
+    values = torch.cat([source_pixels, source_depth[:, None].to(source_pixels)], 1)
+    both = surface_points(triangle_id, barycentric, triangles, values)
+    pos, z = both[..., :2], both[..., 2]
     scale, origin = source_crop
     crop_xy = (pos - torch.as_tensor(origin, dtype=pos.dtype)) * scale
     s = source_zbuffer.shape[0]

@@ -13,7 +13,7 @@ held-out frame ``t`` is re-created several ways and compared with the real frame
 |---|---|---|
 | ``render`` | tracked | none (the networks' crop only; before issue 15) |
 | ``detail_other`` | tracked | moved from held-out frame ``s`` ≥ 1 s away, nearest pose (honest: a dub's |
-| | | footage frame shows another mouth too) |
+| | | footage frame shows another mouth too; the farthest frame when none is 1 s away) |
 | ``detail_same`` | tracked | moved from frame ``t`` itself (optimistic: the answer's own detail) |
 | ``audio`` | mouth from the held-out audio | none |
 | ``audio_detail`` | mouth from the held-out audio | moved from frame ``s`` |
@@ -102,6 +102,7 @@ def evaluate(
 
     from nvp.app.corpus import tracked_cached
     from nvp.app.dub import dubbed_vertices
+    from nvp.app.evaluate import detail_sources
     from nvp.face_model import default_face_model
     from nvp.image_metrics import (
         high_frequency_energy,
@@ -146,18 +147,9 @@ def evaluate(
             bank.save(rdir / "mouths")
     expr_audio = _style_and_audio_expressions(video, seq, split, cache)
     test = np.arange(split, seq.num_frames)[::step][:max_frames]
-    yaw = np.degrees(np.arctan2(seq.rotation[:, 0, 2], seq.rotation[:, 2, 2]))
-    pitch = np.degrees(np.arctan2(-seq.rotation[:, 1, 2], seq.rotation[:, 2, 2]))
     held = np.arange(split, seq.num_frames)
-    min_gap = int(round(seq.fps))
-
-    def other(t: int) -> int:
-        far = held[np.abs(held - t) >= min_gap]
-        if len(far) == 0:
-            far = held[held != t]
-        return int(far[np.argmin(np.hypot(yaw[far] - yaw[t], pitch[far] - pitch[t]))])
-
-    sources = {int(t): other(int(t)) for t in test}
+    # as nvp eval: the nearest head pose ≥ 1 s away (the farthest frame when the held-out part is shorter)
+    sources = dict(zip(held.tolist(), detail_sources(seq, held, count=len(held)).tolist(), strict=True))
     train_idx = np.flatnonzero(seq.valid[:split])
     weights = model.mouth_weights()
     lips = model.landmark_groups["lips_outer"]
