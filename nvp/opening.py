@@ -3,13 +3,16 @@
 The person map of :mod:`nvp.person` is solved on the target's own footage, often a few seconds, and the
 generic network it reads was trained through one such map per training video; both leave the mouth's
 opening only loosely tied to the sound. This model is the other half: a ridge regression from a window of
-the phoneme recogniser's hidden features (``"phonetic"``, :mod:`nvp.audio_features`) to the *standardised*
+speech features (Whisper's encoder states, ``"whisper"``, :mod:`nvp.audio_features`; the first shipped
+model read the phoneme recogniser's hidden features, ``"phonetic"``) to the *standardised*
 inner-lip gap (each training video's gap minus its mean, over its standard deviation), so it needs no
 person and no map. It predicts a held-out person's opening better than the network and map do, and the
 person layer blends the two (:class:`nvp.person.OpeningStyle`).
 
 It is trained in closed form by ``nvp train-opening`` (:mod:`nvp.app.train_opening`) and ships as
-``nvp/assets/opening_phonetic.{npz,json}``.
+``nvp/assets/opening_whisper.{npz,json}``. The earlier ``opening_phonetic`` model still ships, so that
+people fitted with it keep dubbing exactly as before (:func:`shipped_opening_model` finds a style's model by
+its hash).
 """
 
 from __future__ import annotations
@@ -24,7 +27,8 @@ import numpy as np
 from nvp.artifact import load_artifact, save_artifact
 
 FORMAT_VERSION = 1
-FEATURE_KIND = "phonetic"
+FEATURE_KIND = "whisper"
+"""Features new opening models read (and ``nvp fit`` calibrates people on)."""
 WINDOW_STEP = 2
 """Every ``WINDOW_STEP``-th sample of a feature window is read (8 of 16 at 25 Hz over 320 ms; all 16
 predict no better on the validation people)."""
@@ -33,7 +37,10 @@ SMOOTHING_S = 0.08
 25 fps: a 2-frame closure keeps 3/4 of its depth). On the validation people it brought the mouth's
 frame-to-frame jitter back to that without the model (ratio to the real mouth 0.99 → 0.81; without the
 model 0.81) and raised the opening correlation 0.588 → 0.597."""
-DEFAULT_PATH = Path(__file__).parent / "assets" / "opening_phonetic.json"
+ASSETS = Path(__file__).parent / "assets"
+DEFAULT_PATH = ASSETS / "opening_whisper.json"
+SHIPPED_PATHS = (DEFAULT_PATH, ASSETS / "opening_phonetic.json")
+"""Every opening model that ships: the default first, then earlier ones that fitted people may use."""
 
 
 @dataclass(frozen=True)
@@ -46,6 +53,7 @@ class OpeningModel:
         window_step: stride over the window's samples.
         sha256: hash of the weights file (empty for a model not loaded from disk); person styles record it.
         info: provenance (corpus, ridge, validation correlations).
+        feature_kind: the speech features it reads (:data:`nvp.audio_features.FEATURE_KINDS`).
     """
 
     weight: np.ndarray
@@ -53,6 +61,7 @@ class OpeningModel:
     window_step: int = WINDOW_STEP
     sha256: str = ""
     info: dict = field(default_factory=dict)
+    feature_kind: str = FEATURE_KIND
 
     def predict(self, windows: np.ndarray | Iterable[np.ndarray], fps: float) -> np.ndarray:
         """``(T,)`` float32 standardised openings of the feature windows ``(T, W, D)`` (or consecutive blocks
@@ -70,7 +79,7 @@ class OpeningModel:
 
     def save(self, path: Path) -> Path:
         """Write ``path`` (.npz) and its ``.json`` manifest (:mod:`nvp.artifact`); returns the manifest."""
-        fields = {"feature_kind": FEATURE_KIND, "window_step": self.window_step, "info": self.info}
+        fields = {"feature_kind": self.feature_kind, "window_step": self.window_step, "info": self.info}
         arrays = {"weight": self.weight, "bias": np.float32(self.bias)}
         return save_artifact(Path(path), "opening", FORMAT_VERSION, arrays, fields)
 
@@ -79,14 +88,29 @@ class OpeningModel:
         art = load_artifact(Path(path), "opening", FORMAT_VERSION)
         m = art.manifest
         return cls(
-            art.arrays["weight"], float(art.arrays["bias"]), int(m["window_step"]), m["sha256"], m["info"]
+            art.arrays["weight"],
+            float(art.arrays["bias"]),
+            int(m["window_step"]),
+            m["sha256"],
+            m["info"],
+            m["feature_kind"],
         )
 
 
 @lru_cache(maxsize=1)
 def default_opening_model() -> OpeningModel:
-    """The opening model that ships with nvp."""
+    """The opening model that ships with nvp (new fits are calibrated on it)."""
     return OpeningModel.load(DEFAULT_PATH)
+
+
+@lru_cache(maxsize=4)
+def shipped_opening_model(sha256: str) -> OpeningModel | None:
+    """The shipped opening model whose weights file has this hash (:data:`SHIPPED_PATHS`), None if none."""
+    for path in SHIPPED_PATHS:
+        model = default_opening_model() if path == DEFAULT_PATH else OpeningModel.load(path)
+        if model.sha256 == sha256:
+            return model
+    return None
 
 
 def standardized_opening(gap: np.ndarray, valid: np.ndarray) -> np.ndarray:

@@ -93,15 +93,15 @@ class VideoSample:
         tracked: the video's ``TrackedSequence`` (``T`` frames; expressions are the regression target).
         noisy: more ``(T, W, D)`` windows of the same frames, from the audio with noise mixed in (training
             augmentation; may be empty).
-        phonetic: ``(T, W, 144)`` windows of ``"phonetic"`` features of the same frames for the opening
-            model (:mod:`nvp.opening`), or None.
+        opening_windows: ``(T, W, D)`` windows of the opening model's features (``"whisper"``,
+            :mod:`nvp.opening`) of the same frames, or None.
     """
 
     name: str
     windows: np.ndarray
     tracked: TrackedSequence
     noisy: tuple[np.ndarray, ...] = ()
-    phonetic: np.ndarray | None = None
+    opening_windows: np.ndarray | None = None
 
     @property
     def expression(self) -> np.ndarray:
@@ -336,8 +336,8 @@ def style_from_sample(
       0.85 → 0.06 (real 0.09), opening correlation 0.40 → 0.49;
     * closed expression: their closed lips while speaking (:func:`closed_mouth`), when the network has a
       closure head;
-    * opening: with an ``opening`` model and the sample's ``phonetic`` windows, how its predictions blend
-      into the mouth (:func:`opening_style`, ``opening_weight``).
+    * opening: with an ``opening`` model and the sample's ``opening_windows`` (of that model's features),
+      how its predictions blend into the mouth (:func:`opening_style`, ``opening_weight``).
     """
     ok = sample.valid
     identity = sample.tracked.identity
@@ -355,8 +355,8 @@ def style_from_sample(
     if net.closure is not None:
         closed = closed_mouth(expression, gap, None if voiced is None else voiced[ok])
     calibration = None
-    if opening is not None and sample.phonetic is not None and opening_weight > 0:
-        predicted, z = pmap.apply(audio_exp), opening.predict(sample.phonetic, sample.tracked.fps)[ok]
+    if opening is not None and sample.opening_windows is not None and opening_weight > 0:
+        predicted, z = pmap.apply(audio_exp), opening.predict(sample.opening_windows, sample.tracked.fps)[ok]
         calibration = opening_style(
             model, identity, expression, predicted, z, opening.sha256, opening_weight, max_gain
         )
@@ -429,15 +429,17 @@ def apply_style(
 
 
 def style_opening_model(style: PersonStyle) -> OpeningModel | None:
-    """The opening model a style was calibrated for (the shipped one), None for a style without one."""
+    """The shipped opening model a style was calibrated for, None for a style without one."""
     if style.opening is None:
         return None
     from nvp.errors import NvpError
-    from nvp.opening import default_opening_model
+    from nvp.opening import shipped_opening_model
 
-    model = default_opening_model()
-    if model.sha256 != style.opening.model_sha256:
-        raise NvpError("this person was fitted with a different mouth-opening model; run nvp fit again")
+    model = shipped_opening_model(style.opening.model_sha256)
+    if model is None:
+        raise NvpError(
+            "this person was fitted with a mouth-opening model nvp no longer ships; run nvp fit again"
+        )
     return model
 
 
@@ -447,17 +449,19 @@ def style_expressions(
     windows: np.ndarray,
     voice: np.ndarray | None = None,
     ramp: tuple[float, float] = CLOSURE_RAMP,
-    phonetic: tuple[np.ndarray, float] | None = None,
+    opening_windows: tuple[np.ndarray, float] | None = None,
     opening: OpeningModel | None = None,
 ) -> np.ndarray:
-    """:func:`apply_style` for feature windows ``(T, W, D)`` held in memory (evaluations); ``phonetic``:
-    ``(T, W, 144)`` windows and the video frame rate for the ``opening`` model (default: the style's,
-    :func:`style_opening_model`), needed when the style has an opening calibration."""
+    """:func:`apply_style` for feature windows ``(T, W, D)`` held in memory (evaluations);
+    ``opening_windows``: ``(T, W, D')`` windows of the ``opening`` model's features (default model: the
+    style's, :func:`style_opening_model`) and the video frame rate, needed when the style has an opening
+    calibration."""
     z = None
     if style.opening is not None:
-        if phonetic is None:
-            raise ValueError("this person's style needs phonetic feature windows")
-        z = (opening or style_opening_model(style)).predict(in_blocks(phonetic[0], WINDOW_BLOCK), phonetic[1])
+        if opening_windows is None:
+            raise ValueError("this person's style needs the opening model's feature windows")
+        model = opening or style_opening_model(style)
+        z = model.predict(in_blocks(opening_windows[0], WINDOW_BLOCK), opening_windows[1])
     return apply_style(style, *network_outputs(net, in_blocks(windows, WINDOW_BLOCK)), voice, ramp, z)
 
 
@@ -479,39 +483,41 @@ def predict_expressions(
     from nvp.vad import voice_activity
     from nvp.windows import iter_frame_windows
 
-    feats, phonetic = speech_features(audio, sample_rate, style)
+    feats, opening_feats = speech_features(audio, sample_rate, style)
     # windows are made block by block: all of them at once would be (T, 16, 191) float32, 37 MB a minute
     blocks = iter_frame_windows(feats, fps, num_frames, block=WINDOW_BLOCK)
     audio_exp, closure = network_outputs(net, blocks)
-    z = opening_outputs(style, phonetic, fps, len(audio_exp))
+    z = opening_outputs(style, opening_feats, fps, len(audio_exp))
     voice = voice_activity(audio, sample_rate, fps, len(audio_exp))
     return apply_style(style, audio_exp, closure, voice, opening=z)
 
 
 def opening_outputs(
-    style: PersonStyle, phonetic: AudioFeatures | None, fps: float, num_frames: int
+    style: PersonStyle, features: AudioFeatures | None, fps: float, num_frames: int
 ) -> np.ndarray | None:
-    """``(num_frames,)`` the style's opening model's predictions from ``"phonetic"`` features (see
+    """``(num_frames,)`` the style's opening model's predictions from its features (see
     :func:`speech_features`) at ``fps``; None for a style without an opening calibration."""
     if style.opening is None:
         return None
     from nvp.windows import iter_frame_windows
 
-    blocks = iter_frame_windows(phonetic, fps, num_frames, block=WINDOW_BLOCK)
+    blocks = iter_frame_windows(features, fps, num_frames, block=WINDOW_BLOCK)
     return style_opening_model(style).predict(blocks, fps)
 
 
 def speech_features(
     audio: np.ndarray, sample_rate: int, style: PersonStyle
 ) -> tuple[AudioFeatures, AudioFeatures | None]:
-    """The network's features of mono audio for a style (speaker-normalised), and the ``"phonetic"``
-    features its opening calibration needs (None without one); one recogniser pass for both."""
+    """The network's features of mono audio for a style (speaker-normalised), and the features of the
+    opening model it was calibrated on (None without one); one recogniser pass when both are the
+    recogniser's (a person fitted with the ``"phonetic"`` opening model)."""
     from nvp.audio_features import extract_features, recogniser_features, speaker_normalized
 
-    if style.opening is None:
+    model = style_opening_model(style)
+    if model is None:
         return speaker_normalized(extract_features(audio, sample_rate, kind=style.feature_kind)), None
-    if style.feature_kind == "phonemes":
+    if style.feature_kind == "phonemes" and model.feature_kind == "phonetic":
         feats, phonetic = recogniser_features(audio, sample_rate)
         return speaker_normalized(feats), phonetic
     feats = speaker_normalized(extract_features(audio, sample_rate, kind=style.feature_kind))
-    return feats, extract_features(audio, sample_rate, kind="phonetic")
+    return feats, extract_features(audio, sample_rate, kind=model.feature_kind)

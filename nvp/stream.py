@@ -86,10 +86,10 @@ class ExpressionStream:
         # the audio's end only when the stream has ended)
         f = self.net.cfg.filter_window
         n = end - first + (0 if final else f - f // 2 - 1)
-        feats, phonetic = speech_features(seg, SAMPLE_RATE, self.style)
+        feats, opening_feats = speech_features(seg, SAMPLE_RATE, self.style)
         windows = frame_windows(feats, self.fps, num_frames=n)
         audio_exp, closure = network_outputs(self.net, [windows])
-        opening = opening_outputs(self.style, phonetic, self.fps, n)
+        opening = opening_outputs(self.style, opening_feats, self.fps, n)
         voice = voice_activity(seg, SAMPLE_RATE, self.fps, n)
         expr = apply_style(self.style, audio_exp, closure, voice, opening=opening)[
             self.done - first : end - first

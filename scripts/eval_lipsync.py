@@ -88,7 +88,8 @@ def evaluate_video(
 ) -> tuple[dict, list[dict]]:
     video = SHARED / "video" / name
     s = load_sample(video, args.cache, "phonemes", progress=False)
-    phonetic = load_sample(video, args.cache, "phonetic", progress=False).windows
+    kind = opening.feature_kind
+    opening_windows = load_sample(video, args.cache, kind, progress=False).windows
     seq = s.tracked
     fps, n = seq.fps, seq.num_frames
     split = int(round(n * TRAIN_FRACTION))
@@ -108,7 +109,7 @@ def evaluate_video(
     bil = bilabial_frames(post.values, labels_idx, post.rate, fps, n)[te] & ok
     voiced = frame_speech_probability(audio, SR, fps, n) >= 0.5
     # the person's style from the first 80 %, as nvp fit makes it
-    fit_part = VideoSample(name, s.windows[:split], seq.head(split), phonetic=phonetic[:split])
+    fit_part = VideoSample(name, s.windows[:split], seq.head(split), opening_windows=opening_windows[:split])
     style = style_from_sample(
         net,
         manifest,
@@ -146,15 +147,16 @@ def evaluate_video(
     start = int(round(split / fps * SR))
     seed = int(hashlib.sha256(name.encode()).hexdigest()[:8], 16)
     for cond, snr in CONDITIONS.items():
-        x, windows, phon = audio, s.windows, phonetic
+        x, windows, ow = audio, s.windows, opening_windows
         if snr is not None:
             x = audio.copy()
             x[start:] = with_white_noise(audio[start:], SR, snr, seed)
-            feats, phon_feats = recogniser_features(x, SR)
+            feats, phonetic = recogniser_features(x, SR)
+            of = phonetic if kind == "phonetic" else extract_features(x, SR, kind=kind)
             windows = frame_windows(feats, fps, num_frames=n).astype(np.float32)
-            phon = frame_windows(phon_feats, fps, num_frames=n).astype(np.float32)
+            ow = frame_windows(of, fps, num_frames=n).astype(np.float32)
         voice = voice_activity(x, SR, fps, n)
-        pred = style_expressions(style, net, windows, voice, args.closure_ramp, (phon, fps), opening)[te]
+        pred = style_expressions(style, net, windows, voice, args.closure_ramp, (ow, fps), opening)[te]
         gap = model.inner_lip_gap(seq.identity, pred)
         varies = gap[ok].std() > 1e-9 and gap_real[ok].std() > 1e-9
         rate = bilabial_closure_rate(gap, bil, closed, lead) if bil.any() else float("nan")
@@ -250,7 +252,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--range-gain-max", type=float, default=RANGE_GAIN_MAX, help="widest person-map gain (1: no widening)"
     )
-    ap.add_argument("--opening", type=Path, default=ASSETS / "opening_phonetic.json", help="opening model")
+    ap.add_argument("--opening", type=Path, default=ASSETS / "opening_whisper.json", help="opening model")
     ap.add_argument(
         "--opening-weight",
         type=float,

@@ -65,8 +65,8 @@ def _style_and_audio_expressions(video: Path, seq, split: int, cache: Path):
 
     net, manifest = default_audio2exp("phonemes")
     windows = features_cached(video, cache, "phonemes", seq.fps, seq.num_frames)
-    phonetic = features_cached(video, cache, FEATURE_KIND, seq.fps, seq.num_frames)
-    train = VideoSample(video.name, windows[:split], seq.head(split), phonetic=phonetic[:split])
+    opening_windows = features_cached(video, cache, FEATURE_KIND, seq.fps, seq.num_frames)
+    train = VideoSample(video.name, windows[:split], seq.head(split), opening_windows=opening_windows[:split])
     voiced = voiced_frames(video, seq.fps, seq.num_frames)[:split]
     opening = default_opening_model()
     style = style_from_sample(net, manifest, train, default_face_model(), voiced=voiced, opening=opening)

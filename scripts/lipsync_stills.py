@@ -29,7 +29,7 @@ from nvp.face_model import default_face_model
 from nvp.geometry import posed
 from nvp.media import frames_at, read_audio
 from nvp.metrics import bilabial_classes, bilabial_frames
-from nvp.opening import default_opening_model
+from nvp.opening import FEATURE_KIND, default_opening_model
 from nvp.person import OPENING_WEIGHT, RANGE_GAIN_MAX, VideoSample, style_expressions, style_from_sample
 from nvp.vad import frame_speech_probability, voice_activity
 
@@ -41,7 +41,7 @@ COLOURS = {"real": (0, 200, 0), "before": (0, 0, 230), "after": (230, 80, 0)}  #
 
 def predictions(video: Path, cache: Path, nets: dict, flat: set[str], weights: dict[str, float]) -> tuple:
     s = load_sample(video, cache, "phonemes", progress=False)
-    phonetic = load_sample(video, cache, "phonetic", progress=False).windows
+    opening_windows = load_sample(video, cache, FEATURE_KIND, progress=False).windows
     opening = default_opening_model()
     seq = s.tracked
     n = seq.num_frames
@@ -52,7 +52,9 @@ def predictions(video: Path, cache: Path, nets: dict, flat: set[str], weights: d
     model = default_face_model()
     out = {"real": seq.expression}
     for key, (net, manifest) in nets.items():
-        part = VideoSample(video.name, s.windows[:split], seq.head(split), phonetic=phonetic[:split])
+        part = VideoSample(
+            video.name, s.windows[:split], seq.head(split), opening_windows=opening_windows[:split]
+        )
         max_gain = 1.0 if key in flat else RANGE_GAIN_MAX
         style = style_from_sample(
             net,
@@ -64,7 +66,7 @@ def predictions(video: Path, cache: Path, nets: dict, flat: set[str], weights: d
             opening=opening,
             opening_weight=weights[key],
         )
-        out[key] = style_expressions(style, net, s.windows, voice, phonetic=(phonetic, seq.fps))
+        out[key] = style_expressions(style, net, s.windows, voice, opening_windows=(opening_windows, seq.fps))
     post = extract_features(audio, SR, kind="phonemes")
     bil = bilabial_frames(post.values, bilabial_classes(phoneme_labels()), post.rate, seq.fps, n)
     bil[:split] = False

@@ -12,7 +12,14 @@ from test_cli import nvp
 
 from nvp.app.train_opening import opening_targets, train_opening
 from nvp.audio2exp import PersonMap
-from nvp.opening import OpeningModel, default_opening_model, fit_opening_model, standardized_opening
+from nvp.opening import (
+    SHIPPED_PATHS,
+    OpeningModel,
+    default_opening_model,
+    fit_opening_model,
+    shipped_opening_model,
+    standardized_opening,
+)
 from nvp.person import PersonStyle, apply_style, opening_style, style_from_sample, transferred_style
 
 K = 64
@@ -61,11 +68,17 @@ def test_model_files_round_trip_and_the_shipped_model_loads(tmp_path):
     back = OpeningModel.load(m.save(tmp_path / "op"))
     np.testing.assert_array_equal(back.weight, m.weight)
     assert back.bias == pytest.approx(m.bias) and back.info["ridge"] == 1.0 and len(back.sha256) == 64
+    assert back.feature_kind == "whisper"  # what new models read
     shipped = default_opening_model()
-    assert shipped.weight.shape == (8, 144) and len(shipped.sha256) == 64
-    split = shipped.info["split"]
-    assert split["validation"] and not set(split["validation"]) & set(split["train"])
-    assert shipped.info["validation_corr"] > 0.5  # measured on held-out people when it was made
+    assert shipped.weight.shape == (8, 384) and shipped.feature_kind == "whisper"
+    for path in SHIPPED_PATHS:  # the earlier model still ships for people fitted with it
+        m = OpeningModel.load(path)
+        assert shipped_opening_model(m.sha256).sha256 == m.sha256 and len(m.sha256) == 64
+        split = m.info["split"]
+        assert split["validation"] and not set(split["validation"]) & set(split["train"])
+        assert m.info["validation_corr"] > 0.5  # measured on held-out people when it was made
+    assert OpeningModel.load(SHIPPED_PATHS[1]).feature_kind == "phonetic"
+    assert shipped_opening_model("0" * 64) is None
 
 
 def test_standardized_opening():
@@ -147,7 +160,7 @@ def test_styles_with_an_opening_save_load_apply_and_transfer(face_model, tmp_pat
     )
 
 
-def test_style_from_sample_calibrates_the_opening_when_given_phonetic_windows(face_model):
+def test_style_from_sample_calibrates_the_opening_when_given_its_windows(face_model):
     from nvp.audio2exp import Audio2ExpConfig, Audio2ExpressionNet
 
     s = fake_sample(face_model, "p", 0, dim=12)
@@ -157,12 +170,12 @@ def test_style_from_sample_calibrates_the_opening_when_given_phonetic_windows(fa
         np.random.default_rng(0).normal(size=(8, 12)).astype(np.float32), 0.0, sha256="b" * 64
     )
     assert style_from_sample(net, manifest, s, face_model, opening=opening).opening is None  # no windows
-    with_phonetic = dataclasses.replace(s, phonetic=s.windows)
-    style = style_from_sample(net, manifest, with_phonetic, face_model, opening=opening)
+    with_windows = dataclasses.replace(s, opening_windows=s.windows)
+    style = style_from_sample(net, manifest, with_windows, face_model, opening=opening)
     assert style.opening is not None and style.opening.model_sha256 == "b" * 64
     assert style.info["opening"] == "calibrated"
     assert (
-        style_from_sample(net, manifest, with_phonetic, face_model, opening=opening, opening_weight=0).opening
+        style_from_sample(net, manifest, with_windows, face_model, opening=opening, opening_weight=0).opening
         is None
     )
 
@@ -203,8 +216,8 @@ def test_train_opening_command(demo_clip, tmp_path):
     )
     assert proc.returncode == 0, proc.stderr
     m = json.loads((tmp_path / "op.json").read_text())
-    assert m["info"]["split"]["train"] == ["a.mp4"] and m["info"]["feature_kind"] == "phonetic"
-    assert OpeningModel.load(tmp_path / "op.json").weight.shape == (8, 144)
+    assert m["info"]["split"]["train"] == ["a.mp4"] and m["info"]["feature_kind"] == "whisper"
+    assert OpeningModel.load(tmp_path / "op.json").weight.shape == (8, 384)
 
 
 def test_one_recogniser_pass_caches_both_feature_kinds(demo_clip, tmp_path, monkeypatch):
@@ -220,3 +233,39 @@ def test_one_recogniser_pass_caches_both_feature_kinds(demo_clip, tmp_path, monk
     phon = features_cached(demo_clip.path, tmp_path, "phonetic", 25.0, 30)
     assert len(calls) == 1 and post.shape == (30, 16, 191) and phon.shape == (30, 16, 144)
     assert len(list((tmp_path / "features").glob("*.json"))) == 2
+
+
+def test_each_person_reads_the_features_of_the_opening_model_they_were_fitted_with(face_model, monkeypatch):
+    """New fits use the shipped default (Whisper features); people fitted with the earlier model keep it
+    (its phonetic features from the recogniser's one pass); an unknown model is refused clearly."""
+    from nvp import audio_features
+    from nvp.errors import NvpError
+    from nvp.person import speech_features
+
+    made = []
+
+    def fake_extract(audio, rate, kind="phonemes", **_):
+        made.append(kind)
+        dim = {"phonemes": 191, "phonetic": 144, "whisper": 384}[kind]
+        return audio_features.AudioFeatures(np.zeros((5, dim), np.float32), 50.0, kind, 0.1)
+
+    def fake_recogniser(audio, rate, **_):
+        made.append("one pass")
+        return fake_extract(audio, rate, "phonemes"), fake_extract(audio, rate, "phonetic")
+
+    monkeypatch.setattr(audio_features, "extract_features", fake_extract)
+    monkeypatch.setattr(audio_features, "recogniser_features", fake_recogniser)
+    style, _, _ = _styles(face_model)
+    audio = np.zeros(1600, np.float32)
+    for path, kind in zip(SHIPPED_PATHS, ("whisper", "phonetic"), strict=True):
+        sha = OpeningModel.load(path).sha256
+        fitted = dataclasses.replace(style, opening=dataclasses.replace(style.opening, model_sha256=sha))
+        made.clear()
+        feats, opening_feats = speech_features(audio, 16000, fitted)
+        assert feats.kind == "phonemes" and opening_feats.kind == kind
+        assert made == (
+            ["phonemes", "whisper"] if kind == "whisper" else ["one pass", "phonemes", "phonetic"]
+        )
+    with pytest.raises(NvpError, match="no longer ships; run nvp fit again"):
+        speech_features(audio, 16000, style)  # calibrated for a model "a" * 64 that never shipped
+    assert speech_features(audio, 16000, dataclasses.replace(style, opening=None))[1] is None

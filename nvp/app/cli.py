@@ -130,8 +130,8 @@ def _cmd_person_map(args: argparse.Namespace) -> int:
     net, manifest = default_audio2exp(args.features)
     cache = Path(args.cache) if args.cache else Path(args.output).parent / ".nvp-cache"
     sample = load_sample(Path(args.video), cache, args.features, progress=not args.quiet)
-    phonetic = load_sample(Path(args.video), cache, FEATURE_KIND, progress=False).windows
-    sample = replace(sample, phonetic=phonetic)
+    opening_windows = load_sample(Path(args.video), cache, FEATURE_KIND, progress=False).windows
+    sample = replace(sample, opening_windows=opening_windows)
     voiced = voiced_frames(Path(args.video), sample.tracked.fps, sample.tracked.num_frames)
     opening = default_opening_model()
     style = style_from_sample(net, manifest, sample, default_face_model(), voiced=voiced, opening=opening)

@@ -142,9 +142,11 @@ def fit(
         seq = TrackedSequence.load(builder.path("tracked"))
         cache = builder.work / "cache"
         windows = features_cached(builder.path("target"), cache, cfg.features, seq.fps, seq.num_frames)
-        phonetic = features_cached(builder.path("target"), cache, FEATURE_KIND, seq.fps, seq.num_frames)
+        opening_windows = features_cached(
+            builder.path("target"), cache, FEATURE_KIND, seq.fps, seq.num_frames
+        )
         net, manifest = default_audio2exp(cfg.features)
-        sample = VideoSample(name=video.name, windows=windows, tracked=seq, phonetic=phonetic)
+        sample = VideoSample(name=video.name, windows=windows, tracked=seq, opening_windows=opening_windows)
         voiced = voiced_frames(builder.path("target"), seq.fps, seq.num_frames)
         style = style_from_sample(
             net, manifest, sample, default_face_model(), voiced=voiced, opening=default_opening_model()

@@ -44,9 +44,9 @@ def train_opening(
     ridges: tuple[float, ...] = RIDGES,
     provenance: dict | None = None,
 ) -> tuple[OpeningModel, dict]:
-    """Fit one model per ridge on ``train_set`` (windows of ``"phonetic"`` features), keep the one whose
-    mean validation correlation is highest (the largest ridge on ties; the largest ridge without validation
-    videos), write ``out`` (.npz + .json) and return it with its summary."""
+    """Fit one model per ridge on ``train_set`` (windows of :data:`nvp.opening.FEATURE_KIND` features),
+    keep the one whose mean validation correlation is highest (the largest ridge on ties; the largest ridge
+    without validation videos), write ``out`` (.npz + .json) and return it with its summary."""
     if not train_set:
         raise NvpError("no training videos")
     widths = {s.windows.shape[2] for s in train_set + val_set}
