@@ -1,7 +1,8 @@
 """Stills of p / b / m frames: the real mouth next to two audio-driven predictions of it.
 
     python scripts/lipsync_stills.py VIDEO [VIDEO ...] --before OLD.json --after NEW.json [--out DIR]
-        [--before-opening-weight 0] [--after-opening-weight 0.75]
+        [--before-opening-weight 0] [--after-opening-weight 0.75] [--before-opening OP.json]
+        [--after-opening OP.json]
 
 For each video of ``../shared/data/video`` the person's style is made from the first 80 % of the frames (as
 ``nvp fit`` does, ``nvp.person.style_from_sample``) with each network, the last 20 % is predicted from the
@@ -10,7 +11,8 @@ held-out frames where the audio says p, b or m, a PNG shows the real frame's mou
 tracked lips (green: real), with the lips of the prediction made by ``--before`` (red) and by ``--after``
 (blue), each outline the model's outer and inner lip contour under the tracked head pose. ``--before-flat``
 turns off the range calibration for the ``--before`` network (what nvp did before it existed); the
-opening weights set how much of the generic opening model (``nvp.opening``) each side blends in (0: none).
+opening weights set how much of the generic opening model (``nvp.opening``) each side blends in (0: none),
+``--before-opening`` / ``--after-opening`` which opening model (default: the shipped one).
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ from nvp.face_model import default_face_model
 from nvp.geometry import posed
 from nvp.media import frames_at, read_audio
 from nvp.metrics import bilabial_classes, bilabial_frames
-from nvp.opening import FEATURE_KIND, default_opening_model
+from nvp.opening import DEFAULT_PATH, OpeningModel
 from nvp.person import OPENING_WEIGHT, RANGE_GAIN_MAX, VideoSample, style_expressions, style_from_sample
 from nvp.vad import frame_speech_probability, voice_activity
 
@@ -39,10 +41,10 @@ SR = 16000
 COLOURS = {"real": (0, 200, 0), "before": (0, 0, 230), "after": (230, 80, 0)}  # BGR
 
 
-def predictions(video: Path, cache: Path, nets: dict, flat: set[str], weights: dict[str, float]) -> tuple:
+def predictions(
+    video: Path, cache: Path, nets: dict, flat: set[str], weights: dict[str, float], openings: dict
+) -> tuple:
     s = load_sample(video, cache, "phonemes", progress=False)
-    opening_windows = load_sample(video, cache, FEATURE_KIND, progress=False).windows
-    opening = default_opening_model()
     seq = s.tracked
     n = seq.num_frames
     split = int(round(0.8 * n))
@@ -52,6 +54,8 @@ def predictions(video: Path, cache: Path, nets: dict, flat: set[str], weights: d
     model = default_face_model()
     out = {"real": seq.expression}
     for key, (net, manifest) in nets.items():
+        opening = openings[key]
+        opening_windows = load_sample(video, cache, opening.feature_kind, progress=False).windows
         part = VideoSample(
             video.name, s.windows[:split], seq.head(split), opening_windows=opening_windows[:split]
         )
@@ -107,6 +111,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--after-opening-weight", type=float, default=OPENING_WEIGHT, help="opening model share, --after"
     )
+    ap.add_argument("--before-opening", type=Path, default=DEFAULT_PATH, help="opening model, --before")
+    ap.add_argument("--after-opening", type=Path, default=DEFAULT_PATH, help="opening model, --after")
     ap.add_argument("--frames", type=int, default=4, help="bilabial frames per video")
     ap.add_argument("--cache", type=Path, default=Path("/tmp/nvp-cache"))
     ap.add_argument("--out", type=Path, default=Path("out/lipsync_stills"))
@@ -124,6 +130,10 @@ def main(argv: list[str] | None = None) -> int:
             nets,
             {"before"} if args.before_flat else set(),
             {"before": args.before_opening_weight, "after": args.after_opening_weight},
+            {
+                "before": OpeningModel.load(args.before_opening),
+                "after": OpeningModel.load(args.after_opening),
+            },
         )
         idx = np.flatnonzero(bil)
         pick = (
