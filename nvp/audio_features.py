@@ -323,6 +323,16 @@ def _phoneme_chunks(n: int, chunk: int, overlap: int) -> list[tuple[int, int]]:
     return [(s, s + length) for s in starts]
 
 
+def _chunk_plan(n: int, chunk_s: float) -> list[tuple[int, int]]:
+    """The chunks (:func:`_phoneme_chunks`) of ``n`` 50 Hz frames for chunks of ``chunk_s`` seconds (at most
+    :data:`PHONEME_MAX_FRAMES` - 1 frames) overlapping by :data:`PHONEME_OVERLAP_S` (at most a third)."""
+    chunk = min(int(round(chunk_s * PHONEME_RATE)), PHONEME_MAX_FRAMES - 1)
+    overlap = min(int(round(PHONEME_OVERLAP_S * PHONEME_RATE)), chunk // 3)
+    if chunk < 3 or (n > chunk and overlap < 1):
+        raise NvpError(f"expected a feature chunk length of at least 0.06 s, found {chunk_s} s")
+    return _phoneme_chunks(n, chunk, overlap)
+
+
 def _crossfade_weights(ranges: list[tuple[int, int]], i: int) -> np.ndarray:
     """``(f1 - f0,)`` weights of chunk ``i``: 1 inside, linear ramps across the overlaps with neighbours."""
     f0, f1 = ranges[i]
@@ -342,12 +352,8 @@ def _extract_phonemes(audio: np.ndarray, chunk_s: float) -> tuple[np.ndarray, np
     n = len(audio) // PHONEME_HOP + 1
     if len(audio) <= N_FFT // 2:  # the front end's reflect padding needs more than 200 samples
         audio = np.pad(audio, (0, N_FFT // 2 + 1 - len(audio)))
-    chunk = min(int(round(chunk_s * PHONEME_RATE)), PHONEME_MAX_FRAMES - 1)
-    overlap = min(int(round(PHONEME_OVERLAP_S * PHONEME_RATE)), chunk // 3)
-    if chunk < 3 or (n > chunk and overlap < 1):
-        raise NvpError(f"expected a phoneme chunk length of at least 0.06 s, found {chunk_s} s")
+    ranges = _chunk_plan(n, chunk_s)
     recognize = _recognizer()
-    ranges = _phoneme_chunks(n, chunk, overlap)
     if len(ranges) == 1:
         logp, hidden = recognize(audio)
         return np.maximum(logp, PHONEME_LOG_FLOOR).astype(np.float32), hidden.astype(np.float32)
@@ -376,12 +382,8 @@ def _extract_whisper(audio: np.ndarray, chunk_s: float) -> np.ndarray:
     from nvp.whisper_encoder import WHISPER_DIM, load_whisper_encoder
 
     n = len(audio) // PHONEME_HOP + 1
-    chunk = min(int(round(chunk_s * PHONEME_RATE)), PHONEME_MAX_FRAMES - 1)
-    overlap = min(int(round(PHONEME_OVERLAP_S * PHONEME_RATE)), chunk // 3)
-    if chunk < 3 or (n > chunk and overlap < 1):
-        raise NvpError(f"expected a feature chunk length of at least 0.06 s, found {chunk_s} s")
+    ranges = _chunk_plan(n, chunk_s)
     encoder = load_whisper_encoder()
-    ranges = _phoneme_chunks(n, chunk, overlap)
     out = np.zeros((n, WHISPER_DIM), dtype=np.float32)
     total = np.zeros((n, 1), dtype=np.float32)
     for i, (f0, f1) in enumerate(ranges):
