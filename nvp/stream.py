@@ -7,7 +7,8 @@ Whole-file prediction (:func:`nvp.person.predict_expressions`) sees all the audi
 reach 0.14 s further), the voice-activity ramp starts 0.12 s before speech, and the phoneme recogniser
 (a conformer that attends over its input) needs some audio after the last feature it is asked for. Each
 step runs features, network and voice activity on the last ``context_s`` seconds before the first new
-frame plus everything after it, so the cost per step does not grow with the stream's length.
+frame plus everything after it, so the cost per step does not grow with the stream's length (the opening
+model's Whisper features only the last ``OPENING_CONTEXT_S``).
 """
 
 from __future__ import annotations
@@ -15,7 +16,8 @@ from __future__ import annotations
 import numpy as np
 
 from nvp.audio2exp import Audio2ExpressionNet, network_outputs
-from nvp.person import PersonStyle, apply_style, opening_outputs, speech_features
+from nvp.audio_features import extract_features, speaker_normalized
+from nvp.person import PersonStyle, apply_style, opening_outputs, speech_features, style_opening_model
 
 SAMPLE_RATE = 16000
 LOOKAHEAD_S = 0.4
@@ -27,6 +29,15 @@ Streamed in 0.2 s steps with a 0.4 s look-ahead, the inner-lip gap of two test c
 (pcavs__681600002_av, minimates__driving) correlates with whole-file prediction at 0.89 / 0.93 with 1 s of
 context, 0.93 / 0.96 with 4 s, 0.95 / 0.97 with 8 s, for 90 / 175 / 300 ms of compute per second of audio
 (one core, another job running)."""
+
+
+OPENING_CONTEXT_S = 2.0
+"""Audio before the first new frame that each step re-reads for the opening model's Whisper features (its
+read-out looks 0.16 s around a frame, and Whisper costs in proportion to the audio it reads; a person fitted
+with the earlier ``"phonetic"`` opening model takes them from the recogniser's pass over ``CONTEXT_S``).
+``scripts/bench_live.py`` on a 512² person and a 19.8 s clip, streamed vs whole-file inner-lip gap
+correlation / compute per second of audio: 4 s (= CONTEXT_S) 0.963 / 160-167 ms, 2 s 0.959 / 134-148 ms,
+1 s 0.948 / 123-139 ms (the earlier phonetic model: 0.960 / 100-107 ms)."""
 
 
 class ExpressionStream:
@@ -41,9 +52,11 @@ class ExpressionStream:
         fps: float,
         lookahead_s: float = LOOKAHEAD_S,
         context_s: float = CONTEXT_S,
+        opening_context_s: float = OPENING_CONTEXT_S,
     ) -> None:
         self.style, self.net, self.fps = style, net, float(fps)
         self.lookahead_s, self.context_s = lookahead_s, context_s
+        self.opening_context_s = min(opening_context_s, context_s)
         self._audio = np.zeros(0, np.float32)
         self._offset = 0  # stream sample index of self._audio[0]
         self.received = 0  # samples received so far
@@ -86,10 +99,20 @@ class ExpressionStream:
         # the audio's end only when the stream has ended)
         f = self.net.cfg.filter_window
         n = end - first + (0 if final else f - f // 2 - 1)
-        feats, opening_feats = speech_features(seg, SAMPLE_RATE, self.style)
+        model = style_opening_model(self.style)
+        if model is None or model.feature_kind == "phonetic":
+            feats, opening_feats = speech_features(seg, SAMPLE_RATE, self.style)
+            opening = opening_outputs(self.style, opening_feats, self.fps, n)
+        else:  # the opening features from a shorter stretch: frames k … n - 1 of this step
+            k = max(0, self.done - first - int(round(self.opening_context_s * self.fps)))
+            feats = speaker_normalized(extract_features(seg, SAMPLE_RATE, kind=self.style.feature_kind))
+            part = seg[int(round(k / self.fps * SAMPLE_RATE)) :]
+            later = opening_outputs(
+                self.style, extract_features(part, SAMPLE_RATE, kind=model.feature_kind), self.fps, n - k
+            )
+            opening = np.concatenate([np.zeros(k, np.float32), later])  # frames < k are not returned
         windows = frame_windows(feats, self.fps, num_frames=n)
         audio_exp, closure = network_outputs(self.net, [windows])
-        opening = opening_outputs(self.style, opening_feats, self.fps, n)
         voice = voice_activity(seg, SAMPLE_RATE, self.fps, n)
         expr = apply_style(self.style, audio_exp, closure, voice, opening=opening)[
             self.done - first : end - first

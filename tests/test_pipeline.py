@@ -365,15 +365,23 @@ def test_a_person_fitted_before_the_opening_model_still_dubs_and_says_so(bundle,
     assert "mouth-opening" not in caplog.text
 
 
-def test_expression_stream_is_causal_and_follows_whole_file_prediction(bundle):
+@pytest.mark.parametrize("opening_model", [0, 1])
+def test_expression_stream_is_causal_and_follows_whole_file_prediction(bundle, opening_model):
+    """Both shipped opening models: Whisper's features from the stream's shorter opening context, and the
+    earlier phonetic model's from the recogniser's pass (a person fitted before keeps streaming)."""
+    import dataclasses
+
     from nvp.audio2exp import default_audio2exp
     from nvp.face_model import default_face_model
+    from nvp.opening import SHIPPED_PATHS, OpeningModel
     from nvp.person import PersonStyle, predict_expressions
     from nvp.stream import ExpressionStream
     from nvp.windows import num_video_frames
 
     style = PersonStyle.load(bundle / "style.json")
     assert style.opening is not None  # nvp fit calibrated the opening model: the stream uses it too
+    sha = OpeningModel.load(SHIPPED_PATHS[opening_model]).sha256
+    style = dataclasses.replace(style, opening=dataclasses.replace(style.opening, model_sha256=sha))
     net, _ = default_audio2exp(style.feature_kind)
     audio = speechlike(6.0, 16000, seed=3)
     whole = predict_expressions(audio, 16000, 25.0, style, net)
