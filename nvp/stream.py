@@ -8,7 +8,7 @@ reach 0.14 s further), the voice-activity ramp starts 0.12 s before speech, and 
 (a conformer that attends over its input) needs some audio after the last feature it is asked for. Each
 step runs features, network and voice activity on the last ``context_s`` seconds before the first new
 frame plus everything after it, so the cost per step does not grow with the stream's length (the opening
-model's Whisper features only the last ``OPENING_CONTEXT_S``).
+model's Whisper features read only the last :data:`OPENING_CONTEXT_S` of it).
 """
 
 from __future__ import annotations
