@@ -17,7 +17,7 @@ layers (6 heads, width 384). Checked against CTranslate2's own ``encode`` on 30 
 error 1.5e-6 on the final output.
 
 Whisper itself always reads 30 s windows, zero-padding shorter audio. nvp encodes only the audio it has
-(the cost grows with the length: a live step of 4.6 s costs a sixth of a padded window), and the opening
+(the cost grows with the length: a live step reads about 2.6 s, a tenth of a padded window), and the opening
 model is trained on such features: a ridge read-out of unpadded features predicts the validation people's
 mouth opening exactly as well as one of padded features (correlation 0.672 vs 0.673).
 """
@@ -47,10 +47,8 @@ correlation 0.67 (layers 0 … 4 and the final norm: 0.49 / 0.63 / **0.67** / 0.
 ``"phonetic"`` features 0.64) and lip closures with ROC AUC 0.82 (phonetic 0.81)."""
 WHISPER_DIM = 384
 """Width of the encoder's hidden states."""
-WHISPER_RATE = 50.0
-"""Encoder positions per second (the 100 Hz mel frames subsampled by 2)."""
-MEL_HOP = 160
 N_FFT = 400
+"""Whisper's STFT size (and window) in samples; its hop is nvp's mel hop, 160 samples."""
 
 _DTYPES = {0: np.float32, 1: np.int8, 2: np.int16, 3: np.int32, 4: np.float16}
 
@@ -127,7 +125,7 @@ def whisper_log_mel(audio: np.ndarray):
     STFT's reflect padding needs)."""
     import torch
 
-    from nvp.audio_features import mel_filterbank
+    from nvp.audio_features import MEL_HOP, mel_filterbank
 
     wav = np.asarray(audio, np.float32).reshape(-1)
     if len(wav) <= N_FFT // 2:
