@@ -485,7 +485,7 @@ def predict_expressions(
     from nvp.vad import voice_activity
     from nvp.windows import iter_frame_windows
 
-    feats, opening_feats = speech_features(audio, sample_rate, style)
+    feats, opening_feats, _ = speech_features(audio, sample_rate, style)
     # windows are made block by block: all of them at once would be (T, 16, 191) float32, 37 MB a minute
     blocks = iter_frame_windows(feats, fps, num_frames, block=WINDOW_BLOCK)
     audio_exp, closure = network_outputs(net, blocks)
@@ -495,31 +495,36 @@ def predict_expressions(
 
 
 def opening_outputs(
-    style: PersonStyle, features: AudioFeatures | None, fps: float, num_frames: int
+    style: PersonStyle, features: AudioFeatures | None, fps: float, num_frames: int, first: int = 0
 ) -> np.ndarray | None:
     """``(num_frames,)`` the style's opening model's predictions from its features (see
-    :func:`speech_features`) at ``fps``; None for a style without an opening calibration."""
+    :func:`speech_features`) at ``fps``, the features starting at video frame ``first`` (frames before it
+    get 0: a stream that reads less audio for them never returns those); None for a style without an
+    opening calibration."""
     if style.opening is None:
         return None
     from nvp.windows import iter_frame_windows
 
-    blocks = iter_frame_windows(features, fps, num_frames, block=WINDOW_BLOCK)
-    return style_opening_model(style).predict(blocks, fps)
+    blocks = iter_frame_windows(features, fps, num_frames - first, block=WINDOW_BLOCK)
+    return np.concatenate([np.zeros(first, np.float32), style_opening_model(style).predict(blocks, fps)])
 
 
 def speech_features(
-    audio: np.ndarray, sample_rate: int, style: PersonStyle
-) -> tuple[AudioFeatures, AudioFeatures | None]:
-    """The network's features of mono audio for a style (speaker-normalised), and the features of the
-    opening model it was calibrated on (None without one); one recogniser pass when both are the
-    recogniser's (a person fitted with the ``"phonetic"`` opening model)."""
+    audio: np.ndarray, sample_rate: int, style: PersonStyle, opening_from: int = 0
+) -> tuple[AudioFeatures, AudioFeatures | None, int]:
+    """The network's features of mono audio ``(S,)`` for a style (speaker-normalised), the features of the
+    opening model it was calibrated on (None without one), and the sample of ``audio`` where those start.
+
+    An opening model with a pass of its own (``"whisper"``) reads ``audio[opening_from:]`` (a stream needs
+    less context for it than for the network); the ``"phonetic"`` one (people fitted before) comes from
+    the recogniser's one pass over all of ``audio``, so its features start at 0."""
     from nvp.audio_features import extract_features, recogniser_features, speaker_normalized
 
     model = style_opening_model(style)
     if model is None:
-        return speaker_normalized(extract_features(audio, sample_rate, kind=style.feature_kind)), None
+        return speaker_normalized(extract_features(audio, sample_rate, kind=style.feature_kind)), None, 0
     if style.feature_kind == "phonemes" and model.feature_kind == "phonetic":
         feats, phonetic = recogniser_features(audio, sample_rate)
-        return speaker_normalized(feats), phonetic
+        return speaker_normalized(feats), phonetic, 0
     feats = speaker_normalized(extract_features(audio, sample_rate, kind=style.feature_kind))
-    return feats, extract_features(audio, sample_rate, kind=model.feature_kind)
+    return feats, extract_features(audio[opening_from:], sample_rate, kind=model.feature_kind), opening_from

@@ -16,8 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from nvp.audio2exp import Audio2ExpressionNet, network_outputs
-from nvp.audio_features import extract_features, speaker_normalized
-from nvp.person import PersonStyle, apply_style, opening_outputs, speech_features, style_opening_model
+from nvp.person import PersonStyle, apply_style, opening_outputs, speech_features
 
 SAMPLE_RATE = 16000
 LOOKAHEAD_S = 0.4
@@ -99,18 +98,13 @@ class ExpressionStream:
         # the audio's end only when the stream has ended)
         f = self.net.cfg.filter_window
         n = end - first + (0 if final else f - f // 2 - 1)
-        model = style_opening_model(self.style)
-        if model is None or model.feature_kind == "phonetic":
-            feats, opening_feats = speech_features(seg, SAMPLE_RATE, self.style)
-            opening = opening_outputs(self.style, opening_feats, self.fps, n)
-        else:  # the opening features from a shorter stretch: frames k … n - 1 of this step
-            k = max(0, self.done - first - int(round(self.opening_context_s * self.fps)))
-            feats = speaker_normalized(extract_features(seg, SAMPLE_RATE, kind=self.style.feature_kind))
-            part = seg[int(round(k / self.fps * SAMPLE_RATE)) :]
-            later = opening_outputs(
-                self.style, extract_features(part, SAMPLE_RATE, kind=model.feature_kind), self.fps, n - k
-            )
-            opening = np.concatenate([np.zeros(k, np.float32), later])  # frames < k are not returned
+        # the opening model's own features (Whisper) read only the last opening_context_s before the
+        # first new frame: from frame k of this step on
+        k = max(0, self.done - first - int(round(self.opening_context_s * self.fps)))
+        at = int(round(k / self.fps * SAMPLE_RATE))
+        feats, opening_feats, opening_at = speech_features(seg, SAMPLE_RATE, self.style, opening_from=at)
+        skip = int(round(opening_at / SAMPLE_RATE * self.fps))  # k, or 0: features from the recogniser's pass
+        opening = opening_outputs(self.style, opening_feats, self.fps, n, first=skip)
         windows = frame_windows(feats, self.fps, num_frames=n)
         audio_exp, closure = network_outputs(self.net, [windows])
         voice = voice_activity(seg, SAMPLE_RATE, self.fps, n)
