@@ -8,12 +8,44 @@ be rasterized directly at crop resolution.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import torch
 import torch.nn.functional as F
 
 from renderer.masks import box_blur, dilate
-from renderer.warp import sample_pixels
+from renderer.warp import moved_detail, sample_pixels, smooth
+
+
+@dataclass
+class MovedDetail:
+    """A source frame's fine detail moved onto a rendered surface, for :func:`paste_region`.
+
+    Attributes:
+        source: ``(C, H', W')`` the source frame (or the part of it the positions refer to).
+        source_crop: ``(C, S, S)`` its crop at ``source_box`` (same value range).
+        source_box: ``(3,)`` that crop's box in ``source``'s pixels.
+        positions: ``(S, S, 2)`` the source pixel (x, y) showing the surface point seen at each crop pixel
+            (:func:`renderer.warp.source_positions`; the pixel itself where ``band`` takes a frame's own
+            background).
+        fine: ``(S, S)`` weight of the detail finer than the crop (1 where the source sees the point).
+        band: ``(S, S)`` weight of the whole band finer than ``sigma`` crop pixels, which replaces the
+            render's (where the surface also moved rigidly; 0 for none). The finer-than-crop part of
+            either counts inside ``paint`` only (outside it ``detail`` adds the footage's own).
+        render_band: ``(C, S, S)`` the render's own band finer than ``sigma`` (see
+            :func:`renderer.warp.smooth`), in the crop's value range.
+        sigma: the band's scale in crop pixels.
+    """
+
+    source: torch.Tensor
+    source_crop: torch.Tensor
+    source_box: np.ndarray
+    positions: torch.Tensor
+    fine: torch.Tensor
+    band: torch.Tensor
+    render_band: torch.Tensor
+    sigma: float
 
 
 def _gaussian_smooth(x: np.ndarray, sigma: float) -> np.ndarray:
@@ -105,7 +137,7 @@ def paste(
     box: np.ndarray,
     weight: torch.Tensor,
     detail: tuple[torch.Tensor, torch.Tensor] | None = None,
-    moved: tuple[torch.Tensor, torch.Tensor, np.ndarray, torch.Tensor, torch.Tensor] | None = None,
+    moved: MovedDetail | None = None,
     paint: torch.Tensor | None = None,
     with_weight: bool = False,
 ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
@@ -120,12 +152,12 @@ def paste(
     (the frame minus its crop-resolution copy), so the footage around a rendered face stays as sharp as
     it was; where the crop equals ``original`` the frame comes back unchanged.
 
-    ``moved = (source, source_crop, source_box, positions, valid)`` with ``paint`` ``(1, 1, S, S)`` (the
-    painted lower face): inside ``paint`` the fine detail of the ``source`` frame ``(C, H', W')`` is added at
-    the surface positions ``(S, S, 2)`` (source-frame pixels, see :func:`renderer.warp.source_positions`)
-    where ``valid`` ``(S, S)`` — the source minus its crop-resolution copy ``source_crop`` ``(C, S, S)``
-    cut at ``source_box``, so the network's render keeps its colours and gains the footage's stubble,
-    pores and lip texture moved with the new geometry.
+    ``moved`` (:class:`MovedDetail`) with ``paint`` ``(1, 1, S, S)`` (the painted lower face): the fine
+    detail of a source frame is added at the surface positions, sampled from the source at full
+    resolution (:func:`renderer.warp.moved_detail`): inside ``paint`` what the crop is too coarse to hold,
+    and where ``moved.band`` the whole band finer than ``moved.sigma`` crop pixels in place of the
+    render's, so the network's render keeps its colours and gains the footage's stubble, pores and lip
+    texture moved with the new geometry.
 
     ``with_weight``: also return the ``(H, W)`` blend weight of the crop in the frame (0 = footage kept).
     """
@@ -145,7 +177,7 @@ def paste_region(
     box: np.ndarray,
     weight: torch.Tensor,
     detail: tuple[torch.Tensor, torch.Tensor] | None = None,
-    moved: tuple[torch.Tensor, torch.Tensor, np.ndarray, torch.Tensor, torch.Tensor] | None = None,
+    moved: MovedDetail | None = None,
     paint: torch.Tensor | None = None,
     interior: tuple[torch.Tensor, torch.Tensor, torch.Tensor, tuple[int, int]] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, tuple[slice, slice]] | None:
@@ -174,8 +206,12 @@ def paste_region(
         maps += [detail[0][None].float(), detail[1].expand(1, 1, s, s)]
     n_maps = sum(m.shape[1] for m in maps)
     if moved is not None:
-        _, _, _, positions, valid = moved
-        maps += [positions.permute(2, 0, 1)[None].float(), (valid[None, None] * paint).float()]
+        maps += [
+            moved.positions.permute(2, 0, 1)[None].float(),
+            (torch.maximum(moved.fine, moved.band)[None, None] * paint).float(),
+            moved.band[None, None].float(),
+            moved.render_band[None].float(),
+        ]
     stacked = torch.cat(maps, 1)
     sampled = F.grid_sample(stacked, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
     c = crop.shape[0]
@@ -186,13 +222,15 @@ def paste_region(
         low, keep = sampled[0, c + 1 : 2 * c + 1], sampled[0, 2 * c + 1 : 2 * c + 2]
         blended = blended + a * keep * (under - low)
     if moved is not None:
-        source, source_crop, source_box, _, _ = moved
         pos = sampled[0, n_maps : n_maps + 2].permute(1, 2, 0)  # (h, w, 2) source-frame pixels
-        strength = sampled[0, n_maps + 2 : n_maps + 3]
-        sx, sy, sside = (float(v) for v in source_box)
+        fine, band = sampled[0, n_maps + 2 : n_maps + 3], sampled[0, n_maps + 3 : n_maps + 4]
+        render_band = sampled[0, n_maps + 4 :]
+        sx, sy, sside = (float(v) for v in moved.source_box)
         crop_pos = (pos - torch.tensor([sx - sside / 2, sy - sside / 2])) * (s / sside)
-        fine = sample_pixels(source, pos) - sample_pixels(source_crop, crop_pos)
-        blended = blended + a * strength * fine
+        src_crop = moved.source_crop[None].float()
+        low = sample_pixels(torch.cat([src_crop, smooth(src_crop, moved.sigma)], 1)[0], crop_pos)
+        source = sample_pixels(moved.source, pos, "bicubic")
+        blended = blended + a * moved_detail(source, low[:c], low[c:], render_band, fine, band)
     if interior is not None:
         _paste_interior(blended, rgb, a, (y0, x0), box, s, interior)
     return blended, a[0], (slice(y0, y1), slice(x0, x1))
@@ -229,5 +267,5 @@ def _paste_interior(
     maps = torch.cat([positions.permute(2, 0, 1), mask[None]])[None].float()
     sampled = F.grid_sample(maps, grid, mode="bilinear", padding_mode="zeros", align_corners=False)[0]
     inside = sampled[2:] * a[:, fy0:fy1, fx0:fx1]
-    colour = sample_pixels(patch, sampled[:2].permute(1, 2, 0))
+    colour = sample_pixels(patch, sampled[:2].permute(1, 2, 0), "bicubic")
     blended[:, fy0:fy1, fx0:fx1] += inside * (colour - rgb[:, fy0:fy1, fx0:fx1])

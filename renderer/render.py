@@ -7,6 +7,7 @@ from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import ExitStack
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +16,7 @@ import torch
 from nvp.face_model import FaceModel
 from nvp.geometry import unposed
 from nvp.tracked import TrackedSequence
-from renderer.crop import box_slices, cut, feather, paste_region, region_weight
+from renderer.crop import MovedDetail, box_slices, cut, feather, paste_region, region_weight
 from renderer.data import (
     FrameGeometry,
     Rasterizer,
@@ -26,7 +27,7 @@ from renderer.data import (
 )
 from renderer.masks import dilate
 from renderer.networks import fast_bf16, load_renderer
-from renderer.warp import stillness, surface_points, transfer_band
+from renderer.warp import mesh_edges, rigidity, smooth, surface_points
 
 LOWER_FACE = 0.02
 """Mouth weight (``FaceModel.mouth_weights``) above which a mesh pixel is part of the re-rendered lower
@@ -34,17 +35,19 @@ face."""
 
 BAND_SIGMA = 2.0
 """Detail finer than about this many crop pixels (:func:`renderer.warp.smooth`) comes from the footage
-moved onto the new surface rather than from the networks, where the surface kept still (:data:`STILL_CM`;
-:func:`renderer.warp.transfer_band`). Chosen on dfrf__cnn2 (not a test person) with 1, 2 and 3 (Gaussian
-low-pass, STILL_CM 0.3): a dub's mouth-box high-frequency ratio 0.541 (none) → 0.570 / 0.574 / 0.573, the
-held-out re-creation's mouth-box PSNR with detail from another frame −0.05 / −0.10 / −0.13 dB."""
+moved onto the new surface rather than from the networks, where the surface moved rigidly
+(:data:`STRAIN_LIMIT`; :func:`renderer.warp.moved_detail`). Chosen on dfrf__cnn2 (not a test person) with 1,
+2 and 3: a dub's mouth-box high-frequency ratio 0.541 (none) → 0.570 / 0.574 / 0.573, the held-out
+re-creation's mouth-box PSNR with detail from another frame −0.05 / −0.10 / −0.13 dB."""
 
-STILL_CM = 0.15
-"""A surface point that moved this far (cm, object frame) between the source frame and the new geometry
-gets none of the source's band of detail, one that did not move all of it (linear in between): creases and
-shading around a moving mouth change with it. Chosen on dfrf__cnn2 at sigma 2 with 0.15 / 0.3 / 0.4 / 0.6
-/ no limit: re-creation PSNR from another frame −0.03 / −0.10 / −0.14 / −0.20 / −0.60 dB; a dub's
-sharpness 0.574 for 0.15, 0.3 and 0.6 alike."""
+STRAIN_LIMIT = 0.1
+"""A surface point whose mesh edges stretched or shrank by this fraction between the source frame and the
+new geometry gets none of the source's band of detail, a rigidly moved one all of it (linear in between,
+:func:`renderer.warp.rigidity`). Chosen on dfrf__cnn2 (mouth box; the re-creation's detail from another
+frame ≥ 1 s away, its PSNR honest; a dub's sharpness): strain 0.05 / 0.1 / 0.2 → re-creation 29.54 / 29.37 /
+29.17 dB, dub high-frequency ratio 0.75 / 0.85 / 0.92 — against the vertices' displacement as the measure
+(0.15 / 0.3 / 0.6 cm → 29.48 / 29.27 / 29.02 dB, 0.70 / 0.80 / 0.90), which refuses a chin the jaw carried
+down unchanged."""
 
 WINDOW_MARGIN = 0.25
 """The networks run on the part of the crop around the painted lower face, grown by this fraction of the
@@ -94,6 +97,7 @@ class FrameRenderer:
         self.window_margin = round(WINDOW_MARGIN * self.preset.crop)
         self._triangles = torch.from_numpy(model.triangles)
         self._movable = torch.from_numpy(~model.triangle_regions["mouth_interior"])
+        self._edges = mesh_edges(model.triangles)
 
     def __enter__(self) -> FrameRenderer:
         return self
@@ -183,22 +187,8 @@ class FrameRenderer:
             )
         inside = inside.float()
         keep = 1 - paint  # where the paste adds the footage's own full-resolution detail
-        if self.detail:  # the footage's skin detail at the crop's resolution where the surface kept still
-            still = stillness(
-                unposed(vertices_cam, self.seq.rotation[index], self.seq.translation[index]),
-                unposed(source[2], self.seq.rotation[source[1]], self.seq.translation[source[1]]),
-                STILL_CM,
-            )
-            tri, bary = geo.triangle_id[rows, cols], geo.barycentric[rows, cols]
-            still_px = surface_points(tri, bary, self._triangles, torch.from_numpy(still)[:, None])[..., 0]
-            shown, trust = source_in[:3, rows, cols], source_in[3, rows, cols] * still_px
-            if src_geo is not None:  # the source is this frame: its background is this frame's too
-                background = (tri < 0) & (src_geo.triangle_id[rows, cols] < 0)
-                kept = self._still_background(background, tri >= 0, still_px)
-                shown = torch.where(background, crop[0, :, rows, cols], shown)
-                trust = torch.where(background, kept, trust)
-                keep[..., rows, cols] += paint[..., rows, cols] * kept
-            inside = transfer_band(inside, shown, trust, BAND_SIGMA)
+        if self.detail:  # the footage's band of skin detail too where the surface moved rigidly
+            moved = self._band(moved, inside, (rows, cols), geo, src_geo, vertices_cam, index, source)
         final = crop.to(inside).clone()  # outside the window the crop itself (its paste weight is 0)
         final[..., rows, cols] = inside
         weight = self.weight * region_weight(paint)
@@ -220,16 +210,54 @@ class FrameRenderer:
             painted[ys, xs][rows, cols] = alpha.numpy()
         return (out, painted) if with_weight else out
 
-    def _still_background(
-        self, background: torch.Tensor, surface: torch.Tensor, still_px: torch.Tensor
+    def _band(
+        self,
+        moved: MovedDetail,
+        inside: torch.Tensor,
+        window: tuple[slice, slice],
+        geo: FrameGeometry,
+        src_geo: FrameGeometry | None,
+        vertices_cam: np.ndarray,
+        index: int,
+        source: tuple[np.ndarray, int, np.ndarray],
+    ) -> MovedDetail:
+        """``moved`` with the band of detail finer than :data:`BAND_SIGMA` crop pixels taken from the
+        source where the surface moved rigidly (:data:`STRAIN_LIMIT`) — and, when the source is this very
+        frame (``src_geo``), from its own pixels in the band off the mesh that the networks paint (see
+        :meth:`_kept_background`); ``inside`` ``(1, C, h, w)`` is the networks' render over ``window``."""
+        rows, cols = window
+        rigid = rigidity(vertices_cam, source[2], self._edges, STRAIN_LIMIT)
+        tri, bary = geo.triangle_id[rows, cols], geo.barycentric[rows, cols]
+        rigid_px = surface_points(tri, bary, self._triangles, torch.from_numpy(rigid)[:, None])[..., 0]
+        band = torch.zeros_like(moved.fine)
+        band[rows, cols] = moved.fine[rows, cols] * rigid_px
+        fine, positions = moved.fine.clone(), moved.positions.clone()
+        if src_geo is not None:  # the source is this frame: its background is this frame's too
+            background = (tri < 0) & (src_geo.triangle_id[rows, cols] < 0)
+            kept = self._kept_background(background, tri >= 0, rigid_px)
+            band[rows, cols] = torch.where(background, kept, band[rows, cols])
+            fine[rows, cols] = torch.where(background, kept, fine[rows, cols])
+            # there the source pixel is the pixel itself
+            size, side = self.preset.crop, float(moved.source_box[2])
+            centres = (torch.arange(size, dtype=torch.float32) + 0.5) * (side / size)
+            origin = torch.as_tensor(moved.source_box[:2] - side / 2, dtype=torch.float32)
+            own = torch.stack(torch.meshgrid(centres, centres, indexing="xy"), -1) + origin
+            positions[rows, cols] = torch.where(background[..., None], own[rows, cols], positions[rows, cols])
+        render_band = torch.zeros(inside.shape[1], *band.shape)
+        render_band[:, rows, cols] = (inside - smooth(inside, BAND_SIGMA))[0] * 255
+        return replace(moved, fine=fine, band=band, positions=positions, render_band=render_band)
+
+    def _kept_background(
+        self, background: torch.Tensor, surface: torch.Tensor, rigid_px: torch.Tensor
     ) -> torch.Tensor:
         """Around the painted lower face lies a band off the mesh (the region is grown to cover the
         footage's real chin edge) that the networks paint, softly. Where it is ``background`` ``(h, w)``
-        under both the footage's and the new geometry and every ``surface`` point within reach kept still
-        (``still_px``: jaw line, collar under an unmoved chin), the footage's own pixels there are right.
+        under both the footage's and the new geometry and every ``surface`` point within reach moved
+        rigidly (``rigid_px``: jaw line, collar under a chin the jaw carried), the footage's own pixels there
+        are right.
         Returns how far they are trusted, ``(h, w)`` in [0, 1]."""
         reach = max(1, round(self.preset.region_grow * self.preset.crop)) + 1
-        moving = torch.where(surface, 1 - still_px, torch.zeros_like(still_px))
+        moving = torch.where(surface, 1 - rigid_px, torch.zeros_like(rigid_px))
         return background * (1 - dilate(moving[None, None], reach)[0, 0])
 
     def _interior(
@@ -282,7 +310,9 @@ class FrameRenderer:
         source_in, pos, valid = moved_source(
             geo, src_crop, src_box, src_cam, src_geo.depth, (f, c), self._triangles, self._movable
         )
-        return source_in, (src_img, src_crop * 255, src_box, pos, valid)
+        no_band = torch.zeros_like(valid)  # until :meth:`_band`
+        moved = MovedDetail(src_img, src_crop * 255, src_box, pos, valid, no_band, torch.zeros(0), BAND_SIGMA)
+        return source_in, moved
 
 
 def network_window(paint: torch.Tensor, margin: int, multiple: int = 16) -> tuple[slice, slice]:

@@ -7,7 +7,15 @@ import pytest
 import torch
 
 from renderer.raster_ref import rasterize_reference
-from renderer.warp import sample_pixels, source_positions, stillness, surface_points, transfer_band
+from renderer.warp import (
+    mesh_edges,
+    moved_detail,
+    rigidity,
+    sample_pixels,
+    smooth,
+    source_positions,
+    surface_points,
+)
 
 
 def test_surface_points_interpolate_vertex_values():
@@ -26,10 +34,32 @@ def test_sample_pixels_reads_pixel_centres_and_interpolates():
     np.testing.assert_allclose(sample_pixels(img, pos)[0], [0.0, 11.0, 0.5, 4.0], atol=1e-5)
 
 
-def test_stillness_is_one_where_nothing_moved_and_falls_linearly_to_zero():
-    src = np.zeros((4, 3))
-    tgt = np.array([[0, 0, 0], [0.05, 0, 0], [0, 0.1, 0], [0.5, 0, 0]])
-    np.testing.assert_allclose(stillness(tgt, src, 0.1), [1.0, 0.5, 0.0, 0.0], atol=1e-6)
+def test_sample_pixels_bicubic_keeps_fine_detail_that_bilinear_averages_away():
+    x = torch.arange(32, dtype=torch.float32)
+    img = (((x[None, :] + x[:, None]) % 2) * 2 - 1)[None].repeat(1, 1, 1)  # finest checkerboard
+    img = img * torch.cos(x / 32)[None, None, :]  # not exactly at Nyquist
+    ys, xs = torch.meshgrid(x + 0.8, x + 0.8, indexing="ij")  # a 0.3-pixel shift
+    pos = torch.stack([xs, ys], -1)
+    inner = (slice(None), slice(4, -4), slice(4, -4))
+    energy = {m: float(sample_pixels(img, pos, m)[inner].pow(2).mean()) for m in ("bilinear", "bicubic")}
+    assert energy["bicubic"] > 1.3 * energy["bilinear"]
+
+
+def test_rigidity_is_one_for_rigid_motion_and_falls_where_the_surface_stretched():
+    v, tri = quad()
+    edges = mesh_edges(tri)
+    assert sorted(map(tuple, edges.tolist())) == [(0, 1), (0, 2), (0, 3), (1, 2), (2, 3)]
+    angle = 0.3
+    rot = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
+    moved = v @ rot.T + np.array([5.0, -2.0, 1.0])  # carried without stretching
+    np.testing.assert_allclose(rigidity(moved, v, edges, 0.1), 1.0, atol=1e-6)
+    stretched = v.copy()
+    stretched[2, 0] += 0.1  # edge (2, 3) stretches by 5 %, the diagonal (0, 2) by 2.5 %, (1, 2) by 0.1 %
+    r = rigidity(stretched, v, edges, 0.1)
+    diagonal = (np.hypot(2.1, 2.0) - np.hypot(2.0, 2.0)) / np.hypot(2.0, 2.0)
+    expected = [1 - diagonal / 0.1, 1 - (np.hypot(0.1, 2.0) - 2) / 2 / 0.1, 0.5, 0.5]
+    np.testing.assert_allclose(r, expected, atol=1e-5)
+    np.testing.assert_allclose(rigidity(stretched, v, edges, 0.02)[[2, 3]], 0.0)
 
 
 def _stripes(size: int = 48, shift: int = 0) -> torch.Tensor:
@@ -40,25 +70,55 @@ def _stripes(size: int = 48, shift: int = 0) -> torch.Tensor:
     return img.expand(3, size, size).clone()
 
 
-def test_transfer_band_takes_fine_detail_from_the_trusted_source_and_keeps_the_render_elsewhere():
+def test_moved_detail_puts_the_source_band_in_place_of_the_render_band():
     from kornia.filters import gaussian_blur2d
 
-    real = _stripes()
-    soft = gaussian_blur2d(real[None], (9, 9), (2.0, 2.0), border_type="replicate")  # a network's render
+    real = _stripes()[None]
+    soft = gaussian_blur2d(real, (9, 9), (2.0, 2.0), border_type="replicate")  # a network's render
     source = real + 0.3  # the same detail under another exposure: only its fine band may be used
-    weight = torch.zeros(48, 48)
-    weight[:, :24] = 1
-    out = transfer_band(soft, source, weight, sigma=2.0)[0]
-    inner = (slice(4, 44), slice(2, 16))
-    # deep inside the trusted part: the real fine stripes are back, the source's brightness is not
-    assert float((out - real)[(0, *inner)].abs().mean()) < 0.25 * float(
-        (soft[0] - real)[(0, *inner)].abs().mean()
-    )
-    assert float((out - soft[0])[(0, *inner)].mean().abs()) < 0.02
-    # untrusted part (beyond the fade): exactly the render
-    torch.testing.assert_close(out[:, :, 30:], soft[0, :, :, 30:])
+    src_low, crop_res = smooth(source, 2.0), gaussian_blur2d(source, (5, 5), (1.0, 1.0), "replicate")
+    render_band = soft - smooth(soft, 2.0)
+    ones, zeros = torch.ones(1, 1, 48, 48), torch.zeros(1, 1, 48, 48)
+
+    def out(fine, band):
+        return soft + moved_detail(source, crop_res, src_low, render_band, fine, band)
+
+    inner = (0, 0, slice(4, 44), slice(4, 44))
+    # trusted band: the real fine stripes are back, the source's brightness is not
+    err, soft_err = (out(ones, ones) - real)[inner].abs().mean(), (soft - real)[inner].abs().mean()
+    assert float(err) < 0.25 * float(soft_err)
+    assert float((out(ones, ones) - soft)[inner].mean().abs()) < 0.02
+    # only the finest detail: the render plus what the source's crop-resolution copy lacks
+    torch.testing.assert_close(out(ones, zeros), soft + source - crop_res)
+    # only the band: the render's band replaced by the source's band above crop resolution
+    torch.testing.assert_close(out(zeros, ones), soft - render_band + crop_res - src_low)
     # no weight at all: the render unchanged
-    torch.testing.assert_close(transfer_band(soft, source, torch.zeros(48, 48), 2.0), soft)
+    torch.testing.assert_close(out(zeros, zeros), soft)
+
+
+def test_paste_with_the_frame_as_its_own_source_gives_the_frame_back():
+    """Same geometry, detail from the frame itself, every weight 1: a soft render pasted with the moved
+    detail is the footage again (the band is taken at full resolution, not blurred by the crop)."""
+    from kornia.filters import gaussian_blur2d
+
+    from renderer.crop import MovedDetail, cut, paste_region
+
+    g = torch.Generator().manual_seed(0)
+    frame = gaussian_blur2d(torch.rand(1, 3, 120, 120, generator=g), (5, 5), (0.7, 0.7))[0] * 255
+    box, size = np.array([60.0, 60.0, 96.0]), 48  # 2 frame pixels per crop pixel
+    crop = cut(frame[None], torch.from_numpy(box[None]).float(), size)[0]
+    soft = gaussian_blur2d(crop[None], (9, 9), (2.0, 2.0), "replicate")[0]
+    centres = (torch.arange(size, dtype=torch.float32) + 0.5) * (box[2] / size) + float(box[0] - box[2] / 2)
+    positions = torch.stack(torch.meshgrid(centres, centres, indexing="xy"), -1)
+    ones = torch.ones(size, size)
+    moved = MovedDetail(frame, crop, box, positions, ones, ones, soft - smooth(soft[None], 2.0)[0], 2.0)
+    plain, _, _ = paste_region(frame, soft, box, torch.ones(1, 1, size, size))
+    pasted, _, (rows, cols) = paste_region(
+        frame, soft, box, torch.ones(1, 1, size, size), moved=moved, paint=torch.ones(1, 1, size, size)
+    )
+    inner = (slice(None), slice(16, -16), slice(16, -16))
+    real = frame[:, rows, cols][inner]
+    assert float((pasted[inner] - real).abs().mean()) < 0.1 * float((plain[inner] - real).abs().mean())
 
 
 def quad(z: float = 10.0, shift: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
