@@ -30,6 +30,7 @@ STAGES = {
     "rasterize": ("renderer/data.py", "__call__"),
     "network": ("renderer/networks.py", "forward"),
     "detail transfer": ("renderer/render.py", "_moved"),
+    "detail band": ("renderer/render.py", "_band"),
     "crop": ("renderer/crop.py", "cut"),
     "paste": ("renderer/crop.py", "paste_region"),
     "encode": ("nvp/media.py", "write"),
