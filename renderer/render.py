@@ -243,9 +243,11 @@ class FrameRenderer:
             origin = torch.as_tensor(moved.source_box[:2] - side / 2, dtype=torch.float32)
             own = torch.stack(torch.meshgrid(centres, centres, indexing="xy"), -1) + origin
             positions[rows, cols] = torch.where(background[..., None], own[rows, cols], positions[rows, cols])
-        # fade the band out within BAND_SIGMA of its border (the silhouette, the mouth): a source point
-        # there may sit on an edge of the source frame, whose moved detail would draw a dotted line
-        cover = smooth(band[None, None, rows, cols], BAND_SIGMA)[0, 0]
+        # fade the band out within about a crop pixel of the border of what the source shows (the
+        # silhouette, an occlusion; not the mouth interior, which has its own pixels): a source point there
+        # may sit on an edge of the source frame, whose moved detail drew a dotted line along the jaw
+        shown = (fine[rows, cols] > 0) | (geo.mouth[0, 0, rows, cols] > 0)
+        cover = smooth(shown[None, None].float(), 1.0)[0, 0]
         band[rows, cols] *= ((cover - 0.5) * 2).clamp(0, 1)
         render_band = torch.zeros(inside.shape[1], *band.shape)
         render_band[:, rows, cols] = (inside - smooth(inside, BAND_SIGMA))[0] * 255
