@@ -18,7 +18,7 @@ its hash).
 from __future__ import annotations
 
 from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import lru_cache
 from pathlib import Path
 
@@ -37,6 +37,15 @@ SMOOTHING_S = 0.08
 25 fps: a 2-frame closure keeps 3/4 of its depth). On the validation people it brought the mouth's
 frame-to-frame jitter back to that without the model (ratio to the real mouth 0.99 → 0.81; without the
 model 0.81) and raised the opening correlation 0.588 → 0.597."""
+ADAPT_MIN_FRAMES = 400
+"""Valid footage frames (16 s at 25 fps) from which :func:`adapted_opening_model` corrects the model.
+Chosen on the validation people (whole clips, first 80 % to fit, last 20 % held out): the four with more
+than 400 such frames all gained (held-out opening correlation 0.781 → 0.825, 0.779 → 0.821, 0.625 →
+0.715, 0.695 → 0.812), the eight with 100-230 gained on average but three lost 0.08-0.14."""
+ADAPT_RIDGES = (3e2, 1e3, 3e3, 1e4, 1e5)
+"""Ridge strengths (raw feature units) tried for the person's correction; none is also a candidate."""
+ADAPT_TAIL = 0.25
+"""Fraction of the footage's valid frames, its last ones, held out to choose the ridge."""
 ASSETS = Path(__file__).parent / "assets"
 DEFAULT_PATH = ASSETS / "opening_whisper.json"
 SHIPPED_PATHS = (DEFAULT_PATH, ASSETS / "opening_phonetic.json")
@@ -95,6 +104,58 @@ class OpeningModel:
             m["info"],
             m["feature_kind"],
         )
+
+
+def adapted_opening_model(
+    model: OpeningModel, windows: np.ndarray, gap: np.ndarray, fps: float
+) -> tuple[OpeningModel, dict]:
+    """``model`` corrected for one person from their own footage, and what was chosen.
+
+    The generic read-out predicts the opening any speaker's sound implies; a person's own frames show how
+    *their* mouth follows *their* sound. The correction is a ridge regression of what the generic model
+    misses (the person's standardised opening on the generic output's scale, minus that output) on the same
+    windows, pulled towards none: the weights are ``model``'s plus it. Its strength is chosen among
+    :data:`ADAPT_RIDGES` and "no correction" by the held-out correlation over the footage's last
+    :data:`ADAPT_TAIL` (fitted on the frames before), then refitted on all frames. Footage with fewer than
+    :data:`ADAPT_MIN_FRAMES` frames keeps ``model`` as it is.
+
+    Args:
+        windows: ``(T, W, D)`` the footage's valid frames' feature windows, in order.
+        gap: ``(T,)`` their tracked inner-lip gaps.
+        fps: the footage's frame rate.
+    """
+    from nvp.windows import tent_smooth
+
+    info: dict = {"frames": len(gap)}
+    if len(gap) < ADAPT_MIN_FRAMES or np.std(gap) < 1e-9:
+        return model, info | {"ridge": None}
+    x = np.asarray(windows, np.float32)[:, :: model.window_step].reshape(len(gap), -1).astype(np.float64)
+    generic = x @ model.weight.reshape(-1).astype(np.float64) + model.bias
+    goal = standardized_opening(gap, np.ones(len(gap), bool)) * generic.std() + generic.mean()
+
+    def correction(rows: np.ndarray, ridge: float) -> tuple[np.ndarray, float]:
+        mean = x[rows].mean(0)
+        xc, r = x[rows] - mean, goal[rows] - generic[rows]
+        # dual form: frames are fewer than weights for minutes of footage at 25 fps
+        beta = xc.T @ np.linalg.solve(xc @ xc.T + ridge * np.eye(len(rows)), r - r.mean())
+        return beta, float(r.mean() - mean @ beta)
+
+    def held_out_corr(beta: np.ndarray, bias: float, rows: np.ndarray) -> float:
+        z = tent_smooth((generic + x @ beta + bias).astype(np.float32), SMOOTHING_S * fps)[rows]
+        return float(np.corrcoef(z, gap[rows])[0, 1]) if np.std(z) > 1e-9 else -1.0
+
+    split = int(round(len(gap) * (1 - ADAPT_TAIL)))
+    fit_rows, tail = np.arange(split), np.arange(split, len(gap))
+    scores = {None: held_out_corr(np.zeros(x.shape[1]), 0.0, tail)}
+    for ridge in ADAPT_RIDGES:
+        scores[ridge] = held_out_corr(*correction(fit_rows, ridge), tail)
+    best = max(scores, key=lambda k: scores[k])
+    info |= {"ridge": best, "tail_corr": {str(k): round(v, 4) for k, v in scores.items()}}
+    if best is None:
+        return model, info
+    beta, bias = correction(np.arange(len(gap)), best)
+    weight = (model.weight.astype(np.float64) + beta.reshape(model.weight.shape)).astype(np.float32)
+    return replace(model, weight=weight, bias=float(model.bias + bias)), info
 
 
 @lru_cache(maxsize=1)

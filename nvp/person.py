@@ -31,9 +31,10 @@ if TYPE_CHECKING:
 WINDOW_BLOCK = 2048
 """Video frames whose feature windows :func:`predict_expressions` builds at a time (25 MB for phonemes)."""
 
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4
 """2: the person's closed mouth (``closed``) for the network's closure head; 3: the opening calibration
-(:class:`OpeningStyle`). Older files load without them."""
+(:class:`OpeningStyle`); 4: the opening model corrected for the person (``OpeningStyle.adapted_weight``).
+Older files load without them."""
 
 OPENING_WEIGHT = 0.75
 """Share of the generic opening model (:mod:`nvp.opening`) in the mouth opening, against the person map's
@@ -59,6 +60,8 @@ class OpeningStyle:
         direction: ``(K_exp,)`` expression change per cm of opening.
         map_weight, opening_weight, offset: the blend.
         model_sha256: the opening model it was calibrated for.
+        adapted_weight, adapted_bias: that model's weights and bias corrected on the person's own footage
+            (:func:`nvp.opening.adapted_opening_model`), None for the model as it ships.
     """
 
     gap_weights: np.ndarray
@@ -68,6 +71,8 @@ class OpeningStyle:
     opening_weight: float
     offset: float
     model_sha256: str
+    adapted_weight: np.ndarray | None = None
+    adapted_bias: float = 0.0
 
     def opening_of(self, expression: np.ndarray) -> np.ndarray:
         """``(T,)`` linear opening ``o(e)`` in cm of expressions ``(T, K_exp)``."""
@@ -158,8 +163,10 @@ class PersonStyle:
         if self.opening is not None:
             op = self.opening
             arrays |= {"opening_gap_weights": op.gap_weights, "opening_direction": op.direction}
-            keys = ("gap_offset", "map_weight", "opening_weight", "offset", "model_sha256")
+            keys = ("gap_offset", "map_weight", "opening_weight", "offset", "model_sha256", "adapted_bias")
             fields["opening"] = {k: getattr(op, k) for k in keys}
+            if op.adapted_weight is not None:
+                arrays["opening_adapted_weight"] = op.adapted_weight
         return save_artifact(path, "person_map", FORMAT_VERSION, arrays, fields)
 
     @classmethod
@@ -170,7 +177,10 @@ class PersonStyle:
         opening = None
         if "opening" in m:
             opening = OpeningStyle(
-                gap_weights=a["opening_gap_weights"], direction=a["opening_direction"], **m["opening"]
+                gap_weights=a["opening_gap_weights"],
+                direction=a["opening_direction"],
+                adapted_weight=a.get("opening_adapted_weight"),
+                **m["opening"],
             )
         return cls(
             pm,
@@ -339,7 +349,9 @@ def style_from_sample(
     * closed expression: their closed lips while speaking (:func:`closed_mouth`), when the network has a
       closure head;
     * opening: with an ``opening`` model and the sample's ``opening_windows`` (of that model's features),
-      how its predictions blend into the mouth (:func:`opening_style`, ``opening_weight``).
+      the model corrected on the person's own footage when it is long enough
+      (:func:`nvp.opening.adapted_opening_model`) and how its predictions blend into the mouth
+      (:func:`opening_style`, ``opening_weight``).
     """
     ok = sample.valid
     identity = sample.tracked.identity
@@ -356,15 +368,23 @@ def style_from_sample(
     closed = None
     if net.closure is not None:
         closed = closed_mouth(expression, gap, None if voiced is None else voiced[ok])
-    calibration = None
+    calibration, adaptation = None, None
     if opening is not None and sample.opening_windows is not None and opening_weight > 0:
-        predicted, z = pmap.apply(audio_exp), opening.predict(sample.opening_windows, sample.tracked.fps)[ok]
+        from nvp.opening import adapted_opening_model
+
+        fps = sample.tracked.fps
+        own, adaptation = adapted_opening_model(opening, sample.opening_windows[ok], gap, fps)
+        predicted, z = pmap.apply(audio_exp), own.predict(sample.opening_windows, fps)[ok]
         calibration = opening_style(
             model, identity, expression, predicted, z, opening.sha256, opening_weight, max_gain
         )
+        if calibration is not None and own is not opening:
+            calibration = replace(calibration, adapted_weight=own.weight, adapted_bias=own.bias)
     info = {"video": sample.name, "frames": int(ok.sum()), "ridge": ridge, "rest": kind, "range_gain": gain}
     if opening is not None:
         info["opening"] = "calibrated" if calibration is not None else "not used: no opening motion"
+        if adaptation is not None:
+            info["opening_adapted"] = adaptation
     return PersonStyle(pmap, rest, manifest["feature_kind"], manifest["sha256"], info, closed, calibration)
 
 
@@ -430,18 +450,21 @@ def apply_style(
     return expr.astype(np.float32)
 
 
-def style_opening_model(style: PersonStyle) -> OpeningModel | None:
-    """The shipped opening model a style was calibrated for, None for a style without one."""
+def style_opening_model(style: PersonStyle, base: OpeningModel | None = None) -> OpeningModel | None:
+    """The opening model a style was calibrated for (``base``, by default the shipped model with the
+    style's hash) with the person's own correction when the style has one; None for a style without."""
     if style.opening is None:
         return None
     from nvp.errors import NvpError
     from nvp.opening import shipped_opening_model
 
-    model = shipped_opening_model(style.opening.model_sha256)
+    model = base or shipped_opening_model(style.opening.model_sha256)
     if model is None:
         raise NvpError(
             "this person was fitted with a mouth-opening model nvp no longer ships; run nvp fit again"
         )
+    if style.opening.adapted_weight is not None:  # corrected on the person's own footage
+        return replace(model, weight=style.opening.adapted_weight, bias=style.opening.adapted_bias)
     return model
 
 
@@ -462,7 +485,7 @@ def style_expressions(
     if style.opening is not None:
         if opening_windows is None:
             raise ValueError("this person's style needs the opening model's feature windows")
-        model = opening or style_opening_model(style)
+        model = style_opening_model(style, opening)
         z = model.predict(in_blocks(opening_windows[0], WINDOW_BLOCK), opening_windows[1])
     return apply_style(style, *network_outputs(net, in_blocks(windows, WINDOW_BLOCK)), voice, ramp, z)
 

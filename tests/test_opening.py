@@ -13,14 +13,23 @@ from test_cli import nvp
 from nvp.app.train_opening import opening_targets, train_opening
 from nvp.audio2exp import PersonMap
 from nvp.opening import (
+    ADAPT_MIN_FRAMES,
     SHIPPED_PATHS,
     OpeningModel,
+    adapted_opening_model,
     default_opening_model,
     fit_opening_model,
     shipped_opening_model,
     standardized_opening,
 )
-from nvp.person import PersonStyle, apply_style, opening_style, style_from_sample, transferred_style
+from nvp.person import (
+    PersonStyle,
+    apply_style,
+    opening_style,
+    style_from_sample,
+    style_opening_model,
+    transferred_style,
+)
 
 K = 64
 
@@ -140,10 +149,21 @@ def _styles(face_model):
 def test_styles_with_an_opening_save_load_apply_and_transfer(face_model, tmp_path):
     style, a, z = _styles(face_model)
     back = PersonStyle.load(style.save(tmp_path / "s"))
-    assert json.loads((tmp_path / "s.json").read_text())["version"] == 3
+    assert json.loads((tmp_path / "s.json").read_text())["version"] == 4
     np.testing.assert_allclose(
         apply_style(back, a, None, None, opening=z), apply_style(style, a, None, None, opening=z), atol=1e-5
     )
+    assert back.opening.adapted_weight is None
+    # a person's corrected opening model travels with the style and replaces the shipped weights
+    shipped = default_opening_model()
+    corrected = np.full_like(shipped.weight, 0.01)
+    op = dataclasses.replace(
+        style.opening, model_sha256=shipped.sha256, adapted_weight=corrected, adapted_bias=0.25
+    )
+    back = PersonStyle.load(dataclasses.replace(style, opening=op).save(tmp_path / "adapted"))
+    own = style_opening_model(back)
+    np.testing.assert_array_equal(own.weight, corrected)
+    assert own.bias == 0.25 and own.sha256 == shipped.sha256
     with pytest.raises(ValueError, match="openings"):
         apply_style(style, a, None, None)
     # version-2 styles (no opening) still load and predict without one
@@ -270,3 +290,43 @@ def test_each_person_reads_the_features_of_the_opening_model_they_were_fitted_wi
     with pytest.raises(NvpError, match="no longer ships; run nvp fit again"):
         speech_features(audio, 16000, style)  # calibrated for a model "a" * 64 that never shipped
     assert speech_features(audio, 16000, dataclasses.replace(style, opening=None))[1] is None
+
+
+def _person_footage(frames, seed=0, dim=6, own=1.0, noise=0.1):
+    """Windows ``(T, 16, dim)``, a generic read-out, and the person's gaps: the generic prediction plus
+    ``own`` times a person-specific linear part the generic model misses, plus noise."""
+    rng = np.random.default_rng(seed)
+    windows = rng.normal(size=(frames, 16, dim)).astype(np.float32)
+    generic = OpeningModel(rng.normal(size=(8, dim)).astype(np.float32), 0.0)
+    theirs = rng.normal(size=(8, dim)) * own
+    x = windows[:, ::2]
+    gap = np.einsum("twd,wd->t", x, generic.weight + theirs) + noise * rng.normal(size=frames)
+    return windows, generic, 1.0 + 0.1 * gap
+
+
+def test_the_opening_model_adapts_to_a_person_with_enough_footage():
+    windows, generic, gap = _person_footage(ADAPT_MIN_FRAMES + 200)
+    own, info = adapted_opening_model(generic, windows[:-100], gap[:-100], fps=10.0)
+    assert info["ridge"] is not None and info["frames"] == ADAPT_MIN_FRAMES + 100
+    assert info["tail_corr"][str(info["ridge"])] > info["tail_corr"]["None"]
+    assert own.sha256 == generic.sha256 and own.weight.shape == generic.weight.shape
+
+    def held_out(m):
+        return np.corrcoef(m.predict(windows[-100:], fps=10.0), gap[-100:])[0, 1]
+
+    assert held_out(own) > held_out(generic) + 0.1 and held_out(own) > 0.9
+    # too little footage: the shipped model as it is
+    short, info = adapted_opening_model(generic, windows[:100], gap[:100], fps=10.0)
+    assert short is generic and info == {"frames": 100, "ridge": None}
+
+
+def test_a_person_the_generic_model_already_fits_keeps_it_nearly_unchanged():
+    windows, generic, gap = _person_footage(ADAPT_MIN_FRAMES + 200, own=0.0, noise=0.5)
+    own, _ = adapted_opening_model(generic, windows[:-100], gap[:-100], fps=10.0)
+    change = np.abs(own.weight - generic.weight).max()
+    assert change < 0.05 * np.abs(generic.weight).max()
+
+    def held_out(m):
+        return np.corrcoef(m.predict(windows[-100:], fps=10.0), gap[-100:])[0, 1]
+
+    assert held_out(own) > held_out(generic) - 0.01
