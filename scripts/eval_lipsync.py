@@ -31,6 +31,12 @@ Metrics (``nvp.metrics``), output next to the real video's own number where one 
   (``nvp.metrics.av_offset`` of the two gaps; positive: the output is late), median over videos.
 
 Tracking and features are cached under ``--cache`` (``nvp.app.corpus.load_sample``).
+
+``--joined``: the clips are 3-60 s, most under 10 s, while ``nvp fit`` is meant for 1-3 minutes of footage
+(and corrects the opening model on footage of 16 s or more, ``nvp.opening.adapted_opening_model``).
+Instead of single clips, each person of the set with several clips of one size and frame rate is evaluated
+on their clips joined one after another (written once under ``--cache``/joined): the first 80 % of that
+footage makes the style, the last 20 % (the last clips) is predicted.
 """
 
 from __future__ import annotations
@@ -83,10 +89,38 @@ TRAIN_FRACTION = 0.8
 CONDITIONS = {"clean": None, "noise 10 dB": 10.0, "noise 0 dB": 0.0}
 
 
+def joined_footage(clips: list[Path], out: Path) -> Path | None:
+    """``clips`` of one person one after another as one video ``out`` (made once), None when their frame
+    sizes or rates differ. Each clip's audio is cut or padded to its frames, so sound and picture stay in
+    step across the joins."""
+    from nvp.media import VideoWriter, audio_rate, iter_frames, probe_video
+
+    infos = [probe_video(c) for c in clips]
+    if len({(i.width, i.height, float(i.fps)) for i in infos}) != 1:
+        return None
+    if out.exists():
+        return out
+    out.parent.mkdir(parents=True, exist_ok=True)
+    rate, fps = audio_rate(clips[0]), float(infos[0].fps)
+    frames = [list(iter_frames(c, fps=fps)) for c in clips]
+    sound = [read_audio(c, rate) for c in clips]
+    audio = np.concatenate(
+        [
+            np.pad(a, (0, max(0, round(len(f) / fps * rate) - len(a))))[: round(len(f) / fps * rate)]
+            for a, f in zip(sound, frames, strict=True)
+        ]
+    )
+    with VideoWriter(out, fps, infos[0].width, infos[0].height, audio=audio, audio_rate=rate, crf=14) as w:
+        for clip in frames:
+            for f in clip:
+                w.write(f)
+    return out
+
+
 def evaluate_video(
-    name: str, lang: str, who_name: str, args, net, manifest, opening, model, labels_idx
+    video: Path, lang: str, who_name: str, args, net, manifest, opening, model, labels_idx
 ) -> tuple[dict, list[dict]]:
-    video = SHARED / "video" / name
+    name = video.name
     s = load_sample(video, args.cache, "phonemes", progress=False)
     kind = opening.feature_kind
     opening_windows = load_sample(video, args.cache, kind, progress=False).windows
@@ -241,6 +275,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cache", type=Path, default=Path("/tmp/nvp-cache"))
     ap.add_argument("--out", type=Path, default=Path("out/eval_lipsync"))
     ap.add_argument("--videos", nargs="*", help="only these clips of the set")
+    ap.add_argument("--joined", action="store_true", help="each person's clips joined into one footage")
     ap.add_argument(
         "--closure-ramp",
         type=float,
@@ -266,6 +301,7 @@ def main(argv: list[str] | None = None) -> int:
     split = json.loads(args.split.read_text())
     who = {c: (p, v["language"]) for p, v in split["people"].items() for c in v["clips"]}
     names = [c for c in split[args.set] if not args.videos or c in args.videos]
+    videos = {c: SHARED / "video" / c for c in names}
     model = default_face_model()
     net, manifest = load_net(args.net)
     opening = OpeningModel.load(args.opening)
@@ -275,11 +311,25 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"test clips used by the network: {sorted(trained_on & set(names))}")
     labels_idx = bilabial_classes(phoneme_labels())
     args.out.mkdir(parents=True, exist_ok=True)
+    if args.joined:  # people with several clips, each as one footage of their clips
+        videos = {}
+        for person, v in split["people"].items():
+            clips = [c for c in v["clips"] if c in names]
+            joined = None
+            if len(clips) > 1:
+                target = args.cache / "joined" / f"{person}.mp4"
+                joined = joined_footage([SHARED / "video" / c for c in clips], target)
+            if joined is not None:
+                videos[joined.name] = joined
+                who[joined.name] = (person, v["language"])
+        names = sorted(videos)
     reals, rows = [], []
     t0 = time.perf_counter()
     for i, name in enumerate(names):
         who_name, lang = who[name]
-        real, r = evaluate_video(name, lang, who_name, args, net, manifest, opening, model, labels_idx)
+        real, r = evaluate_video(
+            videos[name], lang, who_name, args, net, manifest, opening, model, labels_idx
+        )
         reals.append(real)
         rows += r
         print(
