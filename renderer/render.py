@@ -47,7 +47,8 @@ new geometry gets none of the source's band of detail, a rigidly moved one all o
 frame ≥ 1 s away, its PSNR honest; a dub's sharpness): strain 0.05 / 0.1 / 0.2 → re-creation 29.54 / 29.37 /
 29.17 dB, dub high-frequency ratio 0.75 / 0.85 / 0.92 — against the vertices' displacement as the measure
 (0.15 / 0.3 / 0.6 cm → 29.48 / 29.27 / 29.02 dB, 0.70 / 0.80 / 0.90), which refuses a chin the jaw carried
-down unchanged."""
+down unchanged. (Measured before the band fades at the silhouette, :meth:`FrameRenderer._band`, which took
+out a dotted line there and with it 0.01-0.04 of these sharpness ratios.)"""
 
 WINDOW_MARGIN = 0.25
 """The networks run on the part of the crop around the painted lower face, grown by this fraction of the
