@@ -318,7 +318,8 @@ class FrameRenderer:
             geo, src_crop, src_box, src_cam, src_geo.depth, (f, c), self._triangles, self._movable
         )
         no_band = torch.zeros_like(valid)  # until :meth:`_band`
-        moved = MovedDetail(src_img, src_crop * 255, src_box, pos, valid, no_band, torch.zeros(0), BAND_SIGMA)
+        no_render_band = torch.zeros_like(src_crop)
+        moved = MovedDetail(src_img, src_crop * 255, src_box, pos, valid, no_band, no_render_band, BAND_SIGMA)
         return source_in, moved
 
 
