@@ -222,15 +222,26 @@ def paste_region(
         low, keep = sampled[0, c + 1 : 2 * c + 1], sampled[0, 2 * c + 1 : 2 * c + 2]
         blended = blended + a * keep * (under - low)
     if moved is not None:
-        pos = sampled[0, n_maps : n_maps + 2].permute(1, 2, 0)  # (h, w, 2) source-frame pixels
-        fine, band = sampled[0, n_maps + 2 : n_maps + 3], sampled[0, n_maps + 3 : n_maps + 4]
-        render_band = sampled[0, n_maps + 4 :]
-        sx, sy, sside = (float(v) for v in moved.source_box)
-        crop_pos = (pos - torch.tensor([sx - sside / 2, sy - sside / 2])) * (s / sside)
-        src_crop = moved.source_crop[None].float()
-        low = sample_pixels(torch.cat([src_crop, smooth(src_crop, moved.sigma)], 1)[0], crop_pos)
-        source = sample_pixels(moved.source, pos, "bicubic")
-        blended = blended + a * moved_detail(source, low[:c], low[c:], render_band, fine, band)
+        # only over the rows and columns where any detail is added (the painted lower face, not the box)
+        weights = sampled[0, n_maps + 2 : n_maps + 4]
+        on = weights.amax(0) > 0
+        rows, cols = torch.nonzero(on.any(1))[:, 0], torch.nonzero(on.any(0))[:, 0]
+        if len(rows):
+            r, k = slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1)
+            part = sampled[0, :, r, k]
+            pos = part[n_maps : n_maps + 2].permute(1, 2, 0)  # (h, w, 2) source-frame pixels
+            fine, band, render_band = (
+                part[n_maps + 2 : n_maps + 3],
+                part[n_maps + 3 : n_maps + 4],
+                part[n_maps + 4 :],
+            )
+            sx, sy, sside = (float(v) for v in moved.source_box)
+            crop_pos = (pos - torch.tensor([sx - sside / 2, sy - sside / 2])) * (s / sside)
+            src_crop = moved.source_crop[None].float()
+            low = sample_pixels(torch.cat([src_crop, smooth(src_crop, moved.sigma)], 1)[0], crop_pos)
+            source = sample_pixels(moved.source, pos, "bicubic")
+            detail = moved_detail(source, low[:c], low[c:], render_band, fine, band)
+            blended[:, r, k] += a[:, r, k] * detail
     if interior is not None:
         _paste_interior(blended, rgb, a, (y0, x0), box, s, interior)
     return blended, a[0], (slice(y0, y1), slice(x0, x1))
