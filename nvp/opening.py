@@ -145,7 +145,9 @@ def adapted_opening_model(
 
     def held_out_corr(beta: np.ndarray, bias: float, rows: np.ndarray) -> float:
         z = tent_smooth((generic + x @ beta + bias).astype(np.float32), SMOOTHING_S * fps)[rows]
-        return float(np.corrcoef(z, gap[rows])[0, 1]) if np.std(z) > 1e-9 else -1.0
+        if np.std(z) < 1e-9 or np.std(gap[rows]) < 1e-9:  # nothing to rank by: keep the model
+            return -1.0
+        return float(np.corrcoef(z, gap[rows])[0, 1])
 
     split = int(round(len(gap) * (1 - ADAPT_TAIL)))
     fit_rows, tail = np.arange(split), np.arange(split, len(gap))

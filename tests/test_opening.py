@@ -331,3 +331,31 @@ def test_a_person_the_generic_model_already_fits_keeps_it_nearly_unchanged():
         return np.corrcoef(m.predict(windows[-100:], fps=10.0), gap[-100:])[0, 1]
 
     assert held_out(own) > held_out(generic) - 0.01
+
+
+def test_a_long_enough_fit_stores_the_corrected_opening_model_and_dubs_with_it(face_model, tmp_path):
+    from nvp.audio2exp import Audio2ExpConfig, Audio2ExpressionNet
+
+    frames = ADAPT_MIN_FRAMES + 100
+    long = fake_sample(face_model, "long", 4, frames=frames)
+    # stationary toy speech (fake_sample's random walk saturates the mouth over 500 frames)
+    windows = np.random.default_rng(4).normal(size=(frames, 16, 12)).astype(np.float32)
+    jaw = np.zeros(K, np.float32)
+    jaw[:3] = [1.5, 0.5, -0.3]
+    expression = np.outer(np.tanh(windows[:, 8, 0]) + 1.5, jaw).astype(np.float32)
+    tracked = dataclasses.replace(long.tracked, expression=expression)
+    long = dataclasses.replace(long, windows=windows, tracked=tracked, opening_windows=windows)
+    net = Audio2ExpressionNet(Audio2ExpConfig(feature_dim=12)).eval()
+    manifest = {"feature_kind": "phonemes", "sha256": "0" * 64}
+    generic = OpeningModel(np.zeros((8, 12), np.float32) + 0.01, 0.0, sha256="b" * 64)
+    style = style_from_sample(net, manifest, long, face_model, opening=generic)
+    assert style.info["opening_adapted"]["ridge"] is not None, style.info["opening_adapted"]
+    assert style.opening.adapted_weight is not None and style.opening.adapted_weight.shape == (8, 12)
+    back = PersonStyle.load(style.save(tmp_path / "s"))
+    np.testing.assert_array_equal(back.opening.adapted_weight, style.opening.adapted_weight)
+    # the corrected model follows the person's opening much better than the shipped-like generic one
+    own = style_opening_model(back, generic)
+    drive = np.tanh(long.windows[:, 8, 0])
+    corr = np.corrcoef(own.predict(long.windows, 25.0), drive)[0, 1]
+    before = abs(np.corrcoef(generic.predict(long.windows, 25.0), drive)[0, 1])
+    assert corr > 0.6 and corr > before + 0.3  # (white-noise toy frames: the light smoothing caps it)
