@@ -134,14 +134,13 @@ def adapted_opening_model(
     goal = standardized_opening(gap, np.ones(len(gap), bool)) * generic.std() + generic.mean()
 
     def correction(rows: np.ndarray, ridge: float) -> tuple[np.ndarray, float]:
-        mean = x[rows].mean(0)
-        xc, r = x[rows] - mean, goal[rows] - generic[rows]
-        r = r - r.mean()
+        mean, missed = x[rows].mean(0), goal[rows] - generic[rows]
+        xc, r = x[rows] - mean, missed - missed.mean()
         if len(rows) < xc.shape[1]:  # fewer frames than weights: the dual form's system is smaller
             beta = xc.T @ np.linalg.solve(xc @ xc.T + ridge * np.eye(len(rows)), r)
         else:
             beta = np.linalg.solve(xc.T @ xc + ridge * np.eye(xc.shape[1]), xc.T @ r)
-        return beta, float((goal[rows] - generic[rows]).mean() - mean @ beta)
+        return beta, float(missed.mean() - mean @ beta)
 
     def held_out_corr(beta: np.ndarray, bias: float, rows: np.ndarray) -> float:
         z = tent_smooth((generic + x @ beta + bias).astype(np.float32), SMOOTHING_S * fps)[rows]

@@ -30,9 +30,9 @@ class MovedDetail:
             (:func:`renderer.warp.source_positions`; the pixel itself where ``band`` takes a frame's own
             background).
         fine: ``(S, S)`` weight of the detail finer than the crop (1 where the source sees the point).
-        band: ``(S, S)`` weight of the whole band finer than ``sigma`` crop pixels, which replaces the
-            render's (where the surface also moved rigidly; 0 for none). The finer-than-crop part of
-            either counts inside ``paint`` only (outside it ``detail`` adds the footage's own).
+        band: ``(S, S)`` weight (at most ``fine``) of the band between the crop's resolution and ``sigma``
+            crop pixels, which replaces the render's (where the surface also moved rigidly; 0 for none).
+            ``fine`` counts inside ``paint`` only (outside it ``detail`` adds the footage's own).
         render_band: ``(C, S, S)`` the render's own band finer than ``sigma`` (see
             :func:`renderer.warp.smooth`), in the crop's value range.
         sigma: the band's scale in crop pixels.
@@ -208,7 +208,7 @@ def paste_region(
     if moved is not None:
         maps += [
             moved.positions.permute(2, 0, 1)[None].float(),
-            (torch.maximum(moved.fine, moved.band)[None, None] * paint).float(),
+            (moved.fine[None, None] * paint).float(),
             moved.band[None, None].float(),
             moved.render_band[None].float(),
         ]
