@@ -206,11 +206,23 @@ def test_two_processes_under_torchrun_follow_the_one_process_run(tmp_path):
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     runs = {
         "one": [sys.executable, script, tmp_path / "one"],
-        "two": [torchrun, "--standalone", "--nproc_per_node", "2", script, tmp_path / "two"],
+        "two": [
+            torchrun,
+            "--standalone",
+            "--nproc_per_node",
+            "2",
+            "--log-dir",
+            tmp_path / "ranks",
+            "--redirects",
+            "3",
+        ]
+        + [script, tmp_path / "two"],
     }
     for name, cmd in runs.items():
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env)
-        assert proc.returncode == 0, f"{name}: {proc.stderr[-2000:]}"
+        # each rank's own output (torchrun's summary of a rank killed by a signal names no cause)
+        ranks = [f"{p}:\n{p.read_text()[-1500:]}" for p in sorted((tmp_path / "ranks").rglob("*.log"))]
+        assert proc.returncode == 0, f"{name}: {proc.stderr[-1500:]}\n" + "\n".join(ranks)
     logs = {k: json.loads((tmp_path / k / "log.json").read_text()) for k in runs}
     assert [r["step"] for r in logs["one"]] == [r["step"] for r in logs["two"]] == list(range(10, 61, 10))
     one = np.array([r["train_loss"] for r in logs["one"]])
