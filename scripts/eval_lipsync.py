@@ -323,6 +323,8 @@ def main(argv: list[str] | None = None) -> int:
                 videos[joined.name] = joined
                 who[joined.name] = (person, v["language"])
         names = sorted(videos)
+    if not names:
+        raise SystemExit(f"no videos to evaluate in the {args.set} split" + (" joined" if args.joined else ""))
     reals, rows = [], []
     t0 = time.perf_counter()
     for i, name in enumerate(names):
