@@ -40,7 +40,7 @@ FILES = {
 }
 MEMBER_ARTIFACTS = {
     "tracked": ("tracked/tracked.json", "tracked_sequence", (1,)),
-    "style": ("style.json", "person_map", (1, 2, 3, 4)),
+    "style": ("style.json", "person_map", (1, 2, 3, 4, 5)),
     "renderer": ("renderer/renderer.json", "renderer", (3, 4, 5, 6)),
 }
 """Bundle member → (manifest path in the bundle, artifact kind, accepted versions), checked on load."""

@@ -4,14 +4,14 @@
 
 Per video of the chosen split (default: test, people never used for training or choosing anything): the
 person's style is made from the first 80 % of the frames exactly as ``nvp fit`` makes it
-(``nvp.person.style_from_sample`` with the voice activity of that part), the last 20 % is predicted from
-audio as ``nvp dub`` predicts it (``nvp.person.apply_style``: network, person map, closure head, voice
-activity of ``nvp.vad.voice_activity``; the opening model ``nvp.opening`` blended in with
-``--opening-weight``, 0 for none), and the tracked mesh's inner-lip gap of the prediction is compared
-with the tracked gap of the real frames (expression level; nothing is rendered). The held-out audio is used
-clean and with white noise mixed in at 10 and 0 dB SNR (noise level relative to the clean held-out speech's
-active level); features and voice activity then see the noisy audio, while the truth (real mouth, bilabial
-frames, pauses) comes from the real video and its clean audio.
+(``nvp.person.style_from_sample`` with the voice activity of that part), the last 20 % is predicted from audio
+as ``nvp dub`` predicts it (``nvp.person.apply_style``: network, person map, closures, voice activity of
+``nvp.vad.voice_activity``; the opening model ``nvp.opening`` blended in with ``--opening-weight``, 0 for
+none, and deciding the closures; without it the closure head does), and the tracked mesh's inner-lip gap of
+the prediction is compared with the tracked gap of the real frames (expression level; nothing is rendered).
+The held-out audio is used clean and with white noise mixed in at 10 and 0 dB SNR (noise level relative to the
+clean held-out speech's active level); features and voice activity then see the noisy audio, while the truth
+(real mouth, bilabial frames, pauses) comes from the real video and its clean audio.
 
 Metrics (``nvp.metrics``), output next to the real video's own number where one exists:
 
@@ -324,7 +324,8 @@ def main(argv: list[str] | None = None) -> int:
                 who[joined.name] = (person, v["language"])
         names = sorted(videos)
     if not names:
-        raise SystemExit(f"no videos to evaluate in the {args.set} split" + (" joined" if args.joined else ""))
+        joined = " (people with several clips)" if args.joined else ""
+        raise SystemExit(f"no videos to evaluate in the {args.set} split{joined}")
     reals, rows = [], []
     t0 = time.perf_counter()
     for i, name in enumerate(names):

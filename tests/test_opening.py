@@ -12,6 +12,7 @@ from test_cli import nvp
 
 from nvp.app.train_opening import opening_targets, train_opening
 from nvp.audio2exp import PersonMap
+from nvp.metrics import closed_level
 from nvp.opening import (
     ADAPT_MIN_FRAMES,
     SHIPPED_PATHS,
@@ -23,6 +24,7 @@ from nvp.opening import (
     standardized_opening,
 )
 from nvp.person import (
+    CLOSING_RAMP,
     PersonStyle,
     apply_style,
     opening_style,
@@ -149,11 +151,13 @@ def _styles(face_model):
 def test_styles_with_an_opening_save_load_apply_and_transfer(face_model, tmp_path):
     style, a, z = _styles(face_model)
     back = PersonStyle.load(style.save(tmp_path / "s"))
-    assert json.loads((tmp_path / "s.json").read_text())["version"] == 4
+    assert json.loads((tmp_path / "s.json").read_text())["version"] == 5
     np.testing.assert_allclose(
         apply_style(back, a, None, None, opening=z), apply_style(style, a, None, None, opening=z), atol=1e-5
     )
-    assert back.opening.adapted_weight is None
+    assert back.opening.adapted_weight is None and back.opening.closed_below is None
+    closing = dataclasses.replace(style, opening=dataclasses.replace(style.opening, closed_below=-0.75))
+    assert PersonStyle.load(closing.save(tmp_path / "closing")).opening.closed_below == -0.75
     # a person's corrected opening model travels with the style and replaces the shipped weights
     shipped = default_opening_model()
     corrected = np.full_like(shipped.weight, 0.01)
@@ -180,6 +184,32 @@ def test_styles_with_an_opening_save_load_apply_and_transfer(face_model, tmp_pat
     )
 
 
+def test_the_opening_model_closes_the_lips_below_the_persons_closing_level(face_model):
+    style, a, z = _styles(face_model)
+    identity = np.zeros(face_model.num_id, np.float32)
+    lo, hi = CLOSING_RAMP
+    below = float(np.quantile(z, 0.2))
+    closing = dataclasses.replace(style, opening=dataclasses.replace(style.opening, closed_below=below))
+    head = np.where(z > 1.0, 0.99, 0.01)  # the closure head says closed where the model says wide open
+    free = apply_style(style, a, None, None, opening=z)
+    out = apply_style(closing, a, head, None, opening=z)
+    shut, open_ = z <= below + lo, z >= below + hi
+    assert shut.sum() > 30 and open_.sum() > 100
+    np.testing.assert_allclose(
+        out[shut], np.broadcast_to(style.closed_expression, out[shut].shape), atol=1e-5
+    )
+    np.testing.assert_allclose(out[open_], free[open_], atol=1e-5)  # the head is not asked
+    between = ~shut & ~open_
+    gaps = [face_model.inner_lip_gap(identity, e[between]) for e in (out, free)]
+    closed_gap = face_model.inner_lip_gap(identity, style.closed_expression[None])[0]
+    assert np.all(np.abs(gaps[0] - closed_gap) <= np.abs(gaps[1] - closed_gap) + 1e-6)
+    # without a closing level the closure head decides, as before
+    by_head = apply_style(style, a, head, None, opening=z)
+    np.testing.assert_allclose(
+        by_head[z > 1.0], np.broadcast_to(style.closed_expression, by_head[z > 1.0].shape), atol=1e-5
+    )
+
+
 def test_style_from_sample_calibrates_the_opening_when_given_its_windows(face_model):
     from nvp.audio2exp import Audio2ExpConfig, Audio2ExpressionNet
 
@@ -194,6 +224,13 @@ def test_style_from_sample_calibrates_the_opening_when_given_its_windows(face_mo
     style = style_from_sample(net, manifest, with_windows, face_model, opening=opening)
     assert style.opening is not None and style.opening.model_sha256 == "b" * 64
     assert style.info["opening"] == "calibrated"
+    # the closing level: the model's output is at or below it as often as the person's lips are closed
+    ok = s.valid
+    gap = face_model.inner_lip_gap(s.tracked.identity, s.expression[ok])
+    z = opening.predict(s.windows, s.tracked.fps)[ok]
+    shut = np.mean(gap <= closed_level(gap))
+    assert 0 < shut < 1
+    assert np.mean(z <= style.opening.closed_below) == pytest.approx(shut, abs=1.5 / ok.sum())
     assert (
         style_from_sample(net, manifest, with_windows, face_model, opening=opening, opening_weight=0).opening
         is None
