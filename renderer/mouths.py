@@ -7,7 +7,11 @@ mouth regions at the footage's resolution (chosen at fit time to cover the shape
 a rendered frame gets the interior of the bank frame whose inner lips are shaped most like the new
 geometry's, moved onto it through the mouth-interior triangles (the same surface correspondence as
 :mod:`renderer.warp`), and pasted where the new geometry shows the interior (Video Rewrite, Bregler et al.
-1997, did this for the whole mouth; here only the interior, inside the rendered lips).
+1997, did this for the whole mouth; here only the interior, inside the rendered lips). Footage cut from
+several takes, or whose light drifts, holds mouths of other colours: an entry whose lips differ in colour
+from those of the entries nearest in time to the output frame's footage costs as much as a far shape
+(:func:`light_costs`), and the pasted interior takes the rendered lips' colour
+(:meth:`renderer.render.FrameRenderer._in_frame_colours`).
 
 Pure functions for choosing frames and entries; :func:`build_mouth_bank` decodes the footage.
 Shapes: ``N`` bank entries, ``P`` patch side, ``M`` inner-lip vertices, ``V`` vertices, ``T`` frames.
@@ -15,7 +19,7 @@ Shapes: ``N`` bank entries, ``P`` patch side, ``M`` inner-lip vertices, ``V`` ve
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -25,7 +29,8 @@ from nvp.artifact import load_artifact, save_artifact
 from nvp.face_model import FaceModel
 from nvp.tracked import TrackedSequence
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+"""2: the footage's lip colours (``light_frames``, ``light_colours``); version-1 banks load without them."""
 PATCH = (64, 256)
 """Smallest and largest side of the stored mouth patches (pixels): a patch spans 1.6 mouth widths and keeps
 the footage's resolution up to a 160 px wide mouth (0.6 MB per entry at 256²), beyond that it is scaled
@@ -35,6 +40,21 @@ ENTRIES = 48
 SWITCH_CM = 0.05
 """Cost (cm of mean inner-lip vertex distance) of changing the bank entry between two output frames: an
 entry is kept while it stays within this much of the best one, so teeth do not flicker from frame to frame."""
+LIGHT_TOLERANCE = 0.25
+"""Relative colour difference between two frames' lips (per channel) still taken as the same light. Within
+one take the bank entries' lip colours spread by 4-10 % (standard deviation per channel; on dfrf__cnn2,
+edtalk__pose_source2, wav2lipgfpgan kim, minimates__driving, multivsr hxn8clTtMTo) and the rendered lips
+differ from the footage's by up to about 20 % (the networks' own error), while the takes of a footage cut
+from a magenta-lit and a daylight interview differ by 55 % on blue (:func:`light_costs`,
+:meth:`renderer.render.FrameRenderer._in_frame_colours`)."""
+LIGHT_STEP = 5
+"""Every this many footage frames the bank records the colour of the lips (the light changes with a cut or a
+drift of the camera's exposure and white balance, not from frame to frame)."""
+LIGHT_CM = 1.0
+"""Cost (cm of inner-lip shape distance) per unit of log colour ratio beyond :data:`LIGHT_TOLERANCE` of a
+bank entry shot in other light than the output frame's footage (:func:`light_costs`): an entry of a
+magenta-lit take (blue 0.65 of a daylight one) costs 0.29 cm, far more than the shape differences between
+entries (a few hundredths of a cm)."""
 
 
 def interior_vertices(model: FaceModel) -> np.ndarray:
@@ -53,24 +73,41 @@ class MouthBank:
             pixel centres at +0.5).
         shapes: ``(N, M, 3)`` float32 the inner-lip vertices in the object frame (cm), what entries are
             chosen by.
+        light_frames: ``(L,)`` footage frames whose lip colour was recorded (sorted; every entry's frame
+            among them), empty for a bank without.
+        light_colours: ``(L, 3)`` float32 the mean colour of the footage at their lip vertices.
     """
 
     frames: np.ndarray
     patches: np.ndarray
     pixels: np.ndarray
     shapes: np.ndarray
+    light_frames: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    light_colours: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
 
     def __len__(self) -> int:
         return len(self.frames)
 
     def save(self, path: Path) -> Path:
-        arrays = {k: getattr(self, k) for k in ("frames", "patches", "pixels", "shapes")}
+        keys = ("frames", "patches", "pixels", "shapes", "light_frames", "light_colours")
+        arrays = {k: getattr(self, k) for k in keys}
         return save_artifact(path, "mouth_bank", FORMAT_VERSION, arrays, {}, compress=True)
 
     @classmethod
     def load(cls, path: Path) -> MouthBank:
-        a = load_artifact(path, "mouth_bank", FORMAT_VERSION).arrays
-        return cls(a["frames"], a["patches"], a["pixels"], a["shapes"])
+        a = load_artifact(path, "mouth_bank", (1, FORMAT_VERSION)).arrays
+        bank = cls(a["frames"], a["patches"], a["pixels"], a["shapes"])
+        if "light_frames" in a:
+            bank.light_frames, bank.light_colours = a["light_frames"], a["light_colours"]
+        return bank
+
+    def light_at(self, frames: np.ndarray) -> np.ndarray:
+        """``(T, 3)`` the recorded lip colour nearest in time to each footage frame of ``frames`` ``(T,)``
+        (the bank must have some)."""
+        lf, f = self.light_frames, np.asarray(frames)
+        i = np.searchsorted(lf, f)
+        lo, hi = np.clip(i - 1, 0, len(lf) - 1), np.clip(i, 0, len(lf) - 1)
+        return self.light_colours[np.where(np.abs(f - lf[lo]) <= np.abs(lf[hi] - f), lo, hi)]
 
     def distances(self, shapes: np.ndarray) -> np.ndarray:
         """``(T, N)`` mean inner-lip vertex distance (cm) of object-frame ``shapes`` ``(T, M, 3)`` to
@@ -118,6 +155,16 @@ def bank_frames(
     return np.sort(cand[chosen])
 
 
+def light_costs(entries: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """``(T, N)`` cost of pasting bank entries whose lips have colours ``entries`` ``(N, 3)`` into output
+    frames whose footage's lips have colours ``reference`` ``(T, 3)`` (:meth:`MouthBank.light_at`):
+    :data:`LIGHT_CM` per unit of the largest per-channel log colour ratio beyond :data:`LIGHT_TOLERANCE`,
+    so a mouth of another take's light is only used when no other shape comes near."""
+    entries, reference = (np.maximum(np.asarray(c, np.float64), 1.0) for c in (entries, reference))
+    ratio = np.abs(np.log(entries[None] / reference[:, None])).max(-1)
+    return LIGHT_CM * np.maximum(ratio - np.log1p(LIGHT_TOLERANCE), 0.0)
+
+
 def choose_entries(distances: np.ndarray, switch: float = SWITCH_CM) -> np.ndarray:
     """``(T,)`` bank entry per output frame minimising the summed shape distances ``(T, N)`` plus
     ``switch`` per change of entry (Viterbi): the nearest entry each frame, without flicker between
@@ -160,8 +207,8 @@ def build_mouth_bank(
     video: Path, seq: TrackedSequence, model: FaceModel, frames: np.ndarray | None = None
 ) -> MouthBank | None:
     """Decode ``video`` and keep the mouth regions of ``frames`` (default :func:`bank_frames` over the
-    whole tracked sequence), at the footage's resolution within :data:`PATCH`; None when the mouth never
-    opens."""
+    whole tracked sequence), at the footage's resolution within :data:`PATCH`, and the lip colour of every
+    :data:`LIGHT_STEP`-th valid frame and of the kept ones; None when the mouth never opens."""
     from nvp.media import frames_at
     from renderer.crop import cut
 
@@ -172,18 +219,25 @@ def build_mouth_bank(
     frames = np.asarray(frames, np.int64)
     if len(frames) == 0:
         return None
-    cam = seq.camera_vertices(model, frames)
-    px = seq.pixels(cam)  # (N, V, 2) frame pixels
     lips = model.vertex_regions["lips"]
-    lo, hi = px[:, lips].min(1), px[:, lips].max(1)
+    light = np.union1d(np.flatnonzero(seq.valid)[::LIGHT_STEP], frames)
+    px = seq.pixels(seq.camera_vertices(model, light))  # (L, V, 2) frame pixels
+    entry = np.searchsorted(light, frames)
+    lo, hi = px[entry][:, lips].min(1), px[entry][:, lips].max(1)
     side = 1.6 * (hi[:, 0] - lo[:, 0])
     boxes = np.concatenate([(lo + hi) / 2, side[:, None]], 1)  # (cx, cy, side), renderer.crop's boxes
     patch = int(np.clip(16 * np.ceil(np.median(side) / 16), *PATCH))
     patches = np.empty((len(frames), patch, patch, 3), np.uint8)
-    for i, img in enumerate(frames_at(video, frames, seq.fps)):
-        t = torch.from_numpy(img).permute(2, 0, 1)[None].float()
-        crop = cut(t, torch.from_numpy(boxes[i : i + 1]).float(), patch)[0]
-        patches[i] = crop.clamp(0, 255).round().byte().permute(1, 2, 0).numpy()
+    colours = np.empty((len(light), 3), np.float32)
+    for i, img in enumerate(frames_at(video, light, seq.fps)):
+        h, w = img.shape[:2]
+        at = np.floor(px[i, lips]).astype(np.int64)
+        colours[i] = img[np.clip(at[:, 1], 0, h - 1), np.clip(at[:, 0], 0, w - 1)].mean(0)
+        k = int(np.searchsorted(frames, light[i]))
+        if k < len(frames) and frames[k] == light[i]:
+            t = torch.from_numpy(img).permute(2, 0, 1)[None].float()
+            crop = cut(t, torch.from_numpy(boxes[k : k + 1]).float(), patch)[0]
+            patches[k] = crop.clamp(0, 255).round().byte().permute(1, 2, 0).numpy()
     origin = boxes[:, None, :2] - boxes[:, None, 2:] / 2
-    pixels = ((px - origin) * (patch / boxes[:, None, 2:])).astype(np.float32)
-    return MouthBank(frames, patches, pixels, shapes[frames])
+    pixels = ((px[entry] - origin) * (patch / boxes[:, None, 2:])).astype(np.float32)
+    return MouthBank(frames, patches, pixels, shapes[frames], light, colours)

@@ -26,8 +26,9 @@ from renderer.data import (
     sequence_boxes,
 )
 from renderer.masks import dilate
+from renderer.mouths import LIGHT_TOLERANCE
 from renderer.networks import fast_bf16, load_renderer
-from renderer.warp import mesh_edges, rigidity, smooth, surface_points
+from renderer.warp import mesh_edges, rigidity, sample_pixels, smooth, surface_points
 
 LOWER_FACE = 0.02
 """Mouth weight (``FaceModel.mouth_weights``) above which a mesh pixel is part of the re-rendered lower
@@ -49,6 +50,11 @@ frame ≥ 1 s away, its PSNR honest; a dub's sharpness): strain 0.05 / 0.1 / 0.2
 (0.15 / 0.3 / 0.6 cm → 29.48 / 29.27 / 29.02 dB, 0.70 / 0.80 / 0.90), which refuses a chin the jaw carried
 down unchanged. (Measured before the band fades at the silhouette, :meth:`FrameRenderer._band`, which took
 out a dotted line there and with it 0.01-0.04 of these sharpness ratios.)"""
+
+INTERIOR_GAIN = (0.5, 2.0)
+"""Range of the per-channel gain that puts a mouth-bank entry's interior into the rendered frame's colours
+(:meth:`FrameRenderer._in_frame_colours`)."""
+
 
 WINDOW_MARGIN = 0.25
 """The networks run on the part of the crop around the painted lower face, grown by this fraction of the
@@ -89,6 +95,10 @@ class FrameRenderer:
         if self.mouths is not None:
             self._patches = torch.from_numpy(self.mouths.patches).permute(0, 3, 1, 2)  # uint8
             self._inner = interior_vertices(model)
+            lips = model.vertex_regions["lips"]
+            self._lip_triangles = torch.from_numpy(
+                lips[model.triangles].all(1) & ~model.triangle_regions["mouth_interior"]
+            )
         self.bf16 = fast_bf16(device) if bf16 is None else bf16
         self.model, self.seq, self.device = model, seq, device
         self.boxes = sequence_boxes(model, seq)
@@ -112,6 +122,19 @@ class FrameRenderer:
         other = copy.copy(self)
         other.raster = Rasterizer(self.model, self.preset.crop, self.preset.region_grow)
         return other
+
+    def mouth_costs(self, shapes: np.ndarray, frames: np.ndarray) -> np.ndarray:
+        """``(T, N)`` how well each mouth-bank entry suits output frames of inner-lip ``shapes`` ``(T, M, 3)``
+        (:func:`renderer.mouths.sequence_shapes`) rendered over footage ``frames`` ``(T,)``: the shape
+        distance (cm) plus, for a bank that recorded the footage's light, the cost of an entry shot in
+        other light (:func:`renderer.mouths.light_costs`)."""
+        from renderer.mouths import light_costs
+
+        costs = self.mouths.distances(shapes)
+        if len(self.mouths.light_frames):
+            bank = self.mouths
+            costs = costs + light_costs(bank.light_at(bank.frames), bank.light_at(np.asarray(frames)))
+        return costs
 
     def tracked(self, index: int) -> np.ndarray:
         """``(V, 3)`` camera-frame vertices of frame ``index`` as tracked."""
@@ -201,7 +224,7 @@ class FrameRenderer:
             detail=(crop[0] * 255, keep),
             moved=moved if self.detail else None,
             paint=paint,
-            interior=self._interior(geo, vertices_cam, index, mouth),
+            interior=self._interior(geo, vertices_cam, index, mouth, final[0].cpu()),
         )
         # only the pixels under the crop box change: the rest of the uint8 frame is copied as it is
         out, painted = frame.copy(), np.zeros(frame.shape[:2], np.float32)
@@ -268,12 +291,18 @@ class FrameRenderer:
         return background * (1 - dilate(moving[None, None], reach)[0, 0])
 
     def _interior(
-        self, geo: FrameGeometry, vertices_cam: np.ndarray, index: int, mouth: int | None
+        self,
+        geo: FrameGeometry,
+        vertices_cam: np.ndarray,
+        index: int,
+        mouth: int | None,
+        render: torch.Tensor,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, tuple[int, int]] | None:
         """The ``interior`` argument of :func:`renderer.crop.paste_region`: bank entry ``mouth``'s patch
-        ``(3, P, P)``, and over the crop window around the interior, the patch pixel at each crop pixel
-        ``(h, w, 2)``, the interior mask ``(h, w)`` and the window's first row and column; None without a
-        bank or when no interior shows."""
+        ``(3, P, P)`` in this frame's colours (:meth:`_in_frame_colours`, against ``render`` ``(3, S, S)``,
+        the rendered crop in [0, 1]), and over the crop window around the interior, the patch pixel at each
+        crop pixel ``(h, w, 2)``, the interior mask ``(h, w)`` and the window's first row and column; None
+        without a bank or when no interior shows."""
         if self.mouths is None:
             return None
         inside = geo.mouth[0, 0]
@@ -287,10 +316,32 @@ class FrameRenderer:
         if mouth is None:
             pose = self.seq.rotation[index], self.seq.translation[index]
             shape = unposed(vertices_cam[self._inner], *pose)
-            mouth = int(np.argmin(self.mouths.distances(shape[None].astype(np.float32))[0]))
+            mouth = int(np.argmin(self.mouth_costs(shape[None].astype(np.float32), np.array([index]))[0]))
         tri, bary = geo.triangle_id[r0:r1, c0:c1], geo.barycentric[r0:r1, c0:c1]
         pos = self.mouths.positions(mouth, tri, bary, self._triangles)
-        return self._patches[mouth].float(), pos, inside[r0:r1, c0:c1], (r0, c0)
+        patch = self._in_frame_colours(self._patches[mouth].float(), mouth, geo, render)
+        return patch, pos, inside[r0:r1, c0:c1], (r0, c0)
+
+    def _in_frame_colours(
+        self, patch: torch.Tensor, mouth: int, geo: FrameGeometry, render: torch.Tensor
+    ) -> torch.Tensor:
+        """Bank entry ``mouth``'s ``patch`` ``(3, P, P)`` with each colour channel scaled so that its lips
+        have the rendered lips' mean colour (``render`` ``(3, S, S)`` in [0, 1] over ``geo``): a bank frame
+        shot in other light (a later take, the camera's white balance or exposure drifting) would paste
+        teeth of another colour. Only the part of the gain beyond :data:`renderer.mouths.LIGHT_TOLERANCE` is
+        applied (within one take the rendered lips differ from the bank's real ones by the networks' own
+        error, which changes from frame to frame: gains on dfrf__cnn2 and edtalk__pose_source2, 5th-95th
+        percentile, 0.92-1.10 and 0.94-1.21; following it cost 0.08 dB of mouth-box PSNR on
+        edtalk__pose_source2), and it stays within :data:`INTERIOR_GAIN`."""
+        tri = geo.triangle_id
+        lips = (tri >= 0) & self._lip_triangles[tri.clamp_min(0)]
+        if int(lips.sum()) < 8:
+            return patch
+        pos = self.mouths.positions(mouth, tri[lips], geo.barycentric[lips], self._triangles)
+        bank = sample_pixels(patch, pos).sum(-1)
+        gain = (render[:, lips].sum(-1) * 255 / bank.clamp_min(1.0)).clamp(*INTERIOR_GAIN)
+        gain = gain / gain.clamp(1 / (1 + LIGHT_TOLERANCE), 1 + LIGHT_TOLERANCE)
+        return patch * gain[:, None, None]
 
     def _moved(
         self,

@@ -55,7 +55,8 @@ def _style(kind: str):
     if kind == "phonemes":
         w = rng.normal(0, 0.1, k).astype(np.float32)
         d = (w / (w @ w)).astype(np.float32)
-        opening = OpeningStyle(w, 0.5, d, 0.25, 0.3, 0.0, default_opening_model().sha256)
+        sha = default_opening_model().sha256
+        opening = OpeningStyle(w, 0.5, d, 0.25, 0.3, 0.0, sha, closed_below=-1.0)  # closes as a fit's does
     return net, PersonStyle(pmap, np.zeros(k, np.float32), kind, manifest["sha256"], {}, closed, opening)
 
 

@@ -140,9 +140,13 @@ def evaluate(
         trained.write_text(json.dumps(numbers, indent=2) + "\n")
     whole = json.loads(trained.read_text())
     if not (rdir / "mouths.json").exists():  # the person's mouth bank, from training frames only
-        from renderer.mouths import build_mouth_bank
+        from renderer.mouths import bank_frames, build_mouth_bank, sequence_shapes
 
-        bank = build_mouth_bank(video, seq.head(split), model)
+        training = seq.valid & (np.arange(seq.num_frames) < split)
+        gaps = model.inner_lip_gap(seq.identity, seq.expression)
+        entries = bank_frames(sequence_shapes(model, seq), gaps, training)
+        # the light of every frame is recorded, as a dub's bank records that of the footage behind it
+        bank = build_mouth_bank(video, seq, model, frames=entries)
         if bank is not None:  # else the teeth variants render without one
             bank.save(rdir / "mouths")
     expr_audio = _style_and_audio_expressions(video, seq, split, cache)

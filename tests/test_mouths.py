@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from renderer.mouths import MouthBank, bank_frames, choose_entries
+from renderer.mouths import LIGHT_CM, LIGHT_TOLERANCE, MouthBank, bank_frames, choose_entries, light_costs
 
 
 def test_a_bank_keeps_open_mouths_spread_over_their_shapes():
@@ -61,3 +61,38 @@ def test_a_stream_keeps_its_entry_until_another_is_clearly_nearer():
     assert next_entry(None, np.array([0.3, 0.1, 0.2])) == 1
     assert next_entry(2, np.array([0.3, 0.1, 0.12]), switch=0.05) == 2  # within the switch cost: kept
     assert next_entry(2, np.array([0.3, 0.1, 0.2]), switch=0.05) == 1
+
+
+def test_an_entry_shot_in_other_light_is_used_only_when_no_other_shape_comes_near(tmp_path):
+    # a footage cut from a daylight take (frames 0-99) and a magenta-lit one (100-199); entries at 10, 40
+    # (daylight) and 110, 140 (magenta); the lips' colour recorded every 5th frame
+    daylight, magenta = np.array([180.0, 110.0, 110.0]), np.array([175.0, 105.0, 170.0])
+    light = np.arange(0, 200, 5)
+    bank = MouthBank(
+        frames=np.array([10, 40, 110, 140]),
+        patches=np.zeros((4, 8, 8, 3), np.uint8),
+        pixels=np.zeros((4, 6, 2), np.float32),
+        shapes=np.zeros((4, 2, 3), np.float32),
+        light_frames=light,
+        light_colours=np.where(light[:, None] < 100, daylight, magenta).astype(np.float32),
+    )
+    back = MouthBank.load(bank.save(tmp_path / "mouths"))
+    np.testing.assert_array_equal(back.light_frames, light)
+    np.testing.assert_allclose(
+        back.light_at(np.array([0, 97, 103, 199, 500])), [daylight] * 2 + [magenta] * 3
+    )
+    entries = bank.light_at(bank.frames)
+    costs = light_costs(entries, bank.light_at(np.array([0, 45, 100, 200])))
+    blue = LIGHT_CM * (np.log(170 / 110) - np.log1p(LIGHT_TOLERANCE))
+    np.testing.assert_allclose(costs[:2], [[0, 0, blue, blue]] * 2)  # a daylight frame: magenta costs
+    np.testing.assert_allclose(costs[2:], [[blue, blue, 0, 0]] * 2)  # and the other way round
+    # within the tolerance the light costs nothing (the networks' own colour error)
+    close = np.array([daylight, daylight * (1 + 0.9 * LIGHT_TOLERANCE)])
+    np.testing.assert_array_equal(light_costs(close, close), 0)
+    # a daylight frame whose nearest shape is a magenta entry takes the nearest daylight one instead,
+    # unless the daylight shapes are far off
+    here = bank.light_at(np.array([20]))
+    assert np.argmin(np.array([[0.10, 0.12, 0.08, 0.20]]) + light_costs(entries, here)) == 0
+    assert np.argmin(np.array([[0.60, 0.70, 0.08, 0.20]]) + light_costs(entries, here)) == 2
+    # a bank of the first format has no light: it loads, and nothing is charged for it (FrameRenderer)
+    assert len(MouthBank(bank.frames, bank.patches, bank.pixels, bank.shapes).light_frames) == 0

@@ -652,7 +652,7 @@ def test_an_open_rendered_mouth_shows_the_person_s_own_interior_from_the_bank(fo
     from nvp.geometry import posed
     from renderer.gl import GLRasterizer
     from renderer.masks import dilate
-    from renderer.mouths import build_mouth_bank
+    from renderer.mouths import LIGHT_TOLERANCE, build_mouth_bank
     from renderer.render import FrameRenderer
 
     path, seq = footage
@@ -664,8 +664,12 @@ def test_an_open_rendered_mouth_shows_the_person_s_own_interior_from_the_bank(fo
     opened = posed(face_model.vertices(seq.identity, wide[None])[0], seq.rotation[5], seq.translation[5])
     bank = build_mouth_bank(path, seq, face_model, frames=np.array([2, 6]))
     assert bank.patches.shape == (2, 64, 64, 3) and bank.pixels.shape == (2, face_model.num_vertices, 2)
+    # the lips' colour of every 5th frame and of the entries' (the footage's light)
+    np.testing.assert_array_equal(bank.light_frames, np.union1d(np.flatnonzero(seq.valid)[::5], [2, 6]))
+    assert bank.light_colours.shape == (len(bank.light_frames), 3) and bank.light_colours.min() > 0
     lips = face_model.vertex_regions["lips"]  # the lips lie inside their patch, 1.6 mouth widths across
     assert 0.15 * 64 < bank.pixels[:, lips, 0].min() and bank.pixels[:, lips, 0].max() < 0.85 * 64
+    footage_mouths = bank.patches.copy()
     bank.patches[:] = (0, 255, 0)  # a green mouth interior, to see where it lands
     bank.save(tmp_path / "r" / "mouths")
     frame = list(iter_frames(path))[5]
@@ -678,6 +682,13 @@ def test_an_open_rendered_mouth_shows_the_person_s_own_interior_from_the_bank(fo
         plain = a.render(frame, 5, opened, tracked).astype(int)
         teeth = b.render(frame, 5, opened, tracked, mouth=1).astype(int)
         np.testing.assert_array_equal(b.render(frame, 5, tracked), a.render(frame, 5, tracked))  # closed
+        # a bank frame shot in other light (here: its channels scaled) pastes about the same interior: each
+        # channel is scaled so that the entry's lips take the rendered lips' colour, but for a tolerance
+        pasted = []
+        for tint in ((1.0, 1.0, 1.0), (0.8, 0.5, 1.6)):
+            b.mouths.patches = np.clip(footage_mouths * np.array(tint) * 0.6, 0, 255).astype(np.uint8)
+            b._patches = torch.from_numpy(b.mouths.patches).permute(0, 3, 1, 2)
+            pasted.append(b.render(frame, 5, opened, tracked, mouth=1).astype(int))
     with GLRasterizer(SIZE, SIZE) as gl:
         r = gl.rasterize(opened, face_model.triangles, face_model.uvs, seq.focal, seq.center)
     inner = torch.isin(
@@ -687,8 +698,12 @@ def test_an_open_rendered_mouth_shows_the_person_s_own_interior_from_the_bank(fo
     near = dilate(inner.float()[None, None], 4)[0, 0].numpy() > 0  # a crop pixel is ~2 frame pixels
     changed = np.abs(teeth - plain).sum(-1) > 0
     assert changed[inner.numpy()].mean() > 0.9 and not changed[~near].any()  # there and only there
-    green = teeth[inner.numpy()].mean(0)
-    assert green[1] > 200 and green[0] < 60 and green[2] < 60
+    green = teeth[inner.numpy()].mean(0)  # green, its level that of the rendered lips' green
+    assert green[1] > 100 and green[0] < 60 and green[2] < 60
+    # the tint (0.5 on green, 1.6 on blue) is taken back to within the tolerance of each paste (both may
+    # differ from the rendered lips by up to it)
+    ratio = pasted[1][inner.numpy()].mean(0) / pasted[0][inner.numpy()].mean(0)
+    assert np.all(np.abs(np.log(ratio)) <= 2 * np.log(1 + LIGHT_TOLERANCE) + 0.02), ratio
 
 
 def test_a_render_of_the_footage_own_geometry_keeps_its_fine_detail(footage, face_model, tmp_path):

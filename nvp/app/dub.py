@@ -170,7 +170,7 @@ def dub(
     ):
         mouths = None
         if fr.mouths is not None:  # the person's own teeth, chosen without flicker
-            mouths = choose_entries(fr.mouths.distances(sequence_shapes(model, seq, expression)))
+            mouths = choose_entries(fr.mouth_costs(sequence_shapes(model, seq, expression), order))
         frames = frames_at(bundle.path("target"), order, seq.fps)
         for _, made in render_frames(fr, frames, order, {"dub": spoken}, progress, "dub", mouths=mouths):
             vw.write(made["dub"])

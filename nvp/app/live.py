@@ -202,7 +202,7 @@ def live(
                     tracked = fr.tracked(k)
                     if fr.mouths is not None:  # the person's own teeth, without flicker
                         shape = sequence_shapes(model, seq, e[None])
-                        entry = next_entry(entry, fr.mouths.distances(shape)[0])
+                        entry = next_entry(entry, fr.mouth_costs(shape, np.array([k]))[0])
                     spoken = dubbed_vertices(model, seq, k, e, weights, tracked)
                     last = fr.render(frame, k, spoken, tracked, mouth=entry)
                 vw.write(last)
