@@ -8,9 +8,9 @@ a rendered frame gets the interior of the bank frame whose inner lips are shaped
 geometry's, moved onto it through the mouth-interior triangles (the same surface correspondence as
 :mod:`renderer.warp`), and pasted where the new geometry shows the interior (Video Rewrite, Bregler et al.
 1997, did this for the whole mouth; here only the interior, inside the rendered lips). Footage cut from
-several takes, or whose light drifts, holds mouths of other colours: an entry whose lips differ in colour
-from those of the entries nearest in time to the output frame's footage costs as much as a far shape
-(:func:`light_costs`), and the pasted interior takes the rendered lips' colour
+several takes, or whose light drifts, holds mouths of other colours: the bank records the colour of the
+footage's lips, an entry whose lips differ from those of the footage frame behind the output frame costs as
+much as a far shape (:func:`light_costs`), and the pasted interior takes the rendered lips' colour
 (:meth:`renderer.render.FrameRenderer._in_frame_colours`).
 
 Pure functions for choosing frames and entries; :func:`build_mouth_bank` decodes the footage.
@@ -53,7 +53,7 @@ drift of the camera's exposure and white balance, not from frame to frame)."""
 LIGHT_CM = 1.0
 """Cost (cm of inner-lip shape distance) per unit of log colour ratio beyond :data:`LIGHT_TOLERANCE` of a
 bank entry shot in other light than the output frame's footage (:func:`light_costs`): an entry of a
-magenta-lit take (blue 0.65 of a daylight one) costs 0.29 cm, far more than the shape differences between
+magenta-lit take (blue 0.65 of a daylight one) costs 0.21 cm, far more than the shape differences between
 entries (a few hundredths of a cm)."""
 
 

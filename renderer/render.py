@@ -26,7 +26,7 @@ from renderer.data import (
     sequence_boxes,
 )
 from renderer.masks import dilate
-from renderer.mouths import LIGHT_TOLERANCE
+from renderer.mouths import LIGHT_TOLERANCE, light_costs
 from renderer.networks import fast_bf16, load_renderer
 from renderer.warp import mesh_edges, rigidity, sample_pixels, smooth, surface_points
 
@@ -54,7 +54,6 @@ out a dotted line there and with it 0.01-0.04 of these sharpness ratios.)"""
 INTERIOR_GAIN = (0.5, 2.0)
 """Range of the per-channel gain that puts a mouth-bank entry's interior into the rendered frame's colours
 (:meth:`FrameRenderer._in_frame_colours`)."""
-
 
 WINDOW_MARGIN = 0.25
 """The networks run on the part of the crop around the painted lower face, grown by this fraction of the
@@ -128,8 +127,6 @@ class FrameRenderer:
         (:func:`renderer.mouths.sequence_shapes`) rendered over footage ``frames`` ``(T,)``: the shape
         distance (cm) plus, for a bank that recorded the footage's light, the cost of an entry shot in
         other light (:func:`renderer.mouths.light_costs`)."""
-        from renderer.mouths import light_costs
-
         costs = self.mouths.distances(shapes)
         if len(self.mouths.light_frames):
             bank = self.mouths
