@@ -98,6 +98,8 @@ class FrameRenderer:
             self._lip_triangles = torch.from_numpy(
                 lips[model.triangles].all(1) & ~model.triangle_regions["mouth_interior"]
             )
+            recorded = len(self.mouths.light_frames) > 0  # the entries' own light, looked up once
+            self._entry_light = self.mouths.light_at(self.mouths.frames) if recorded else None
         self.bf16 = fast_bf16(device) if bf16 is None else bf16
         self.model, self.seq, self.device = model, seq, device
         self.boxes = sequence_boxes(model, seq)
@@ -128,9 +130,8 @@ class FrameRenderer:
         distance (cm) plus, for a bank that recorded the footage's light, the cost of an entry shot in
         other light (:func:`renderer.mouths.light_costs`)."""
         costs = self.mouths.distances(shapes)
-        if len(self.mouths.light_frames):
-            bank = self.mouths
-            costs = costs + light_costs(bank.light_at(bank.frames), bank.light_at(np.asarray(frames)))
+        if self._entry_light is not None:
+            costs = costs + light_costs(self._entry_light, self.mouths.light_at(np.asarray(frames)))
         return costs
 
     def tracked(self, index: int) -> np.ndarray:
@@ -221,7 +222,7 @@ class FrameRenderer:
             detail=(crop[0] * 255, keep),
             moved=moved if self.detail else None,
             paint=paint,
-            interior=self._interior(geo, vertices_cam, index, mouth, final[0].cpu()),
+            interior=self._interior(geo, vertices_cam, index, mouth, final[0]),
         )
         # only the pixels under the crop box change: the rest of the uint8 frame is copied as it is
         out, painted = frame.copy(), np.zeros(frame.shape[:2], np.float32)
@@ -336,7 +337,8 @@ class FrameRenderer:
             return patch
         pos = self.mouths.positions(mouth, tri[lips], geo.barycentric[lips], self._triangles)
         bank = sample_pixels(patch, pos).sum(-1)
-        gain = (render[:, lips].sum(-1) * 255 / bank.clamp_min(1.0)).clamp(*INTERIOR_GAIN)
+        rendered = render[:, lips.to(render.device)].float().sum(-1).cpu()  # only the lips leave the device
+        gain = (rendered * 255 / bank.clamp_min(1.0)).clamp(*INTERIOR_GAIN)
         gain = gain / gain.clamp(1 / (1 + LIGHT_TOLERANCE), 1 + LIGHT_TOLERANCE)
         return patch * gain[:, None, None]
 
