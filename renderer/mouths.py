@@ -3,14 +3,14 @@
 The networks paint the mouth interior from a 16-channel texture at crop resolution: teeth come out as a dark
 or pale band, because they change with every frame and the texture cannot hold them. The footage, though,
 shows this person's real teeth in every open-mouth frame. A *mouth bank* keeps a few dozen of those frames'
-mouth regions at the footage's resolution (chosen at fit time to cover the shapes the person's mouth takes);
-a rendered frame gets the interior of the bank frame whose inner lips are shaped most like the new
-geometry's, moved onto it through the mouth-interior triangles (the same surface correspondence as
-:mod:`renderer.warp`), and pasted where the new geometry shows the interior (Video Rewrite, Bregler et al.
-1997, did this for the whole mouth; here only the interior, inside the rendered lips). Footage cut from
-several takes, or whose light drifts, holds mouths of other colours: the bank records the colour of the
-footage's lips, an entry whose lips differ from those of the footage frame behind the output frame costs as
-much as a far shape (:func:`light_costs`), and the pasted interior takes the rendered lips' colour
+mouth regions at the footage's resolution (chosen at fit time to cover the shapes the person's mouth takes); a
+rendered frame gets the interior of the bank frame whose inner lips are shaped most like the new geometry's,
+moved onto it through the mouth-interior triangles (the same surface correspondence as :mod:`renderer.warp`),
+and pasted where the new geometry shows the interior (Video Rewrite, Bregler et al. 1997, did this for the
+whole mouth; here only the interior, inside the rendered lips). Footage cut from several takes, or whose light
+drifts, holds mouths of other colours: the bank records the footage's light (the colour of the skin around the
+lips), an entry shot in other light than the footage frame behind the output frame costs as much as a far
+shape (:func:`light_costs`), and the pasted interior takes the rendered lips' colour
 (:meth:`renderer.render.FrameRenderer._in_frame_colours`).
 
 Pure functions for choosing frames and entries; :func:`build_mouth_bank` decodes the footage.
@@ -40,21 +40,37 @@ ENTRIES = 48
 SWITCH_CM = 0.05
 """Cost (cm of mean inner-lip vertex distance) of changing the bank entry between two output frames: an
 entry is kept while it stays within this much of the best one, so teeth do not flicker from frame to frame."""
-LIGHT_TOLERANCE = 0.25
-"""Relative colour difference between two frames' lips (per channel) still taken as the same light. Within
-one take the bank entries' lip colours spread by 4-10 % (standard deviation per channel; on dfrf__cnn2,
-edtalk__pose_source2, wav2lipgfpgan kim, minimates__driving, multivsr hxn8clTtMTo) and the rendered lips
-differ from the footage's by up to about 20 % (the networks' own error), while the takes of a footage cut
-from a magenta-lit and a daylight interview differ by 55 % on blue (:func:`light_costs`,
-:meth:`renderer.render.FrameRenderer._in_frame_colours`)."""
+LIGHT_TOLERANCE = 0.15
+"""Relative difference (per channel) between two frames' light (:func:`light_colour`) still taken as the
+same light. Pairs of a footage frame and a bank entry of the same take beyond it: 0.0 / 0.4 / 2.5 / 5.5 % on
+dfrf__cnn2, edtalk__pose_source2, wav2lipgfpgan kim, minimates__driving; of a footage cut from a magenta-lit
+and a daylight interview (voxceleb2_id00100's clips joined): 61 % (:func:`light_costs`)."""
 LIGHT_STEP = 5
-"""Every this many footage frames the bank records the colour of the lips (the light changes with a cut or a
-drift of the camera's exposure and white balance, not from frame to frame)."""
+"""Every this many footage frames the bank records the frame's light (it changes with a cut or a drift of
+the camera's exposure and white balance, not from frame to frame)."""
 LIGHT_CM = 1.0
 """Cost (cm of inner-lip shape distance) per unit of log colour ratio beyond :data:`LIGHT_TOLERANCE` of a
 bank entry shot in other light than the output frame's footage (:func:`light_costs`): an entry of a
-magenta-lit take (blue 0.65 of a daylight one) costs 0.21 cm, far more than the shape differences between
-entries (a few hundredths of a cm)."""
+magenta-lit take (the skin beside the lips 2.2 times as blue as in the daylight one: 234 against 105) costs
+0.66 cm, far more than the shape differences between near entries (a few hundredths of a cm)."""
+
+
+def light_region(model: FaceModel) -> np.ndarray:
+    """``(V,)`` bool: the skin around the lips (the mouth region without the lips), whose colour stands for a
+    frame's light: lips change colour as the mouth opens (inner lips, teeth and shadow at their edge) — within
+    one take 7-34 % of frame / bank-entry pairs differ by more than 25 % there (dfrf__cnn2, edtalk, kim,
+    minimates), the skin beside them 0-2 %."""
+    return model.vertex_regions["mouth"] & ~model.vertex_regions["lips"]
+
+
+def light_colour(image: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+    """``(3,)`` float32 median colour of ``image`` ``(H, W, 3)`` at vertex ``pixels`` ``(K, 2)`` (x, y; the
+    nearest pixel; a median, so that a hair or a highlight does not count)."""
+    h, w = image.shape[:2]
+    at = np.floor(pixels).astype(np.int64)
+    return np.median(image[np.clip(at[:, 1], 0, h - 1), np.clip(at[:, 0], 0, w - 1)], axis=0).astype(
+        np.float32
+    )
 
 
 def interior_vertices(model: FaceModel) -> np.ndarray:
@@ -73,9 +89,9 @@ class MouthBank:
             pixel centres at +0.5).
         shapes: ``(N, M, 3)`` float32 the inner-lip vertices in the object frame (cm), what entries are
             chosen by.
-        light_frames: ``(L,)`` footage frames whose lip colour was recorded (sorted; every entry's frame
-            among them), empty for a bank without.
-        light_colours: ``(L, 3)`` float32 the mean colour of the footage at their lip vertices.
+        light_frames: ``(L,)`` footage frames whose light was recorded (sorted; every entry's frame among
+            them), empty for a bank without.
+        light_colours: ``(L, 3)`` float32 their light (:func:`light_colour` over :func:`light_region`).
     """
 
     frames: np.ndarray
@@ -102,7 +118,7 @@ class MouthBank:
         return bank
 
     def light_at(self, frames: np.ndarray) -> np.ndarray:
-        """``(T, 3)`` the recorded lip colour nearest in time to each footage frame of ``frames`` ``(T,)``
+        """``(T, 3)`` the recorded light nearest in time to each footage frame of ``frames`` ``(T,)``
         (the bank must have some)."""
         lf, f = self.light_frames, np.asarray(frames)
         i = np.searchsorted(lf, f)
@@ -156,8 +172,8 @@ def bank_frames(
 
 
 def light_costs(entries: np.ndarray, reference: np.ndarray) -> np.ndarray:
-    """``(T, N)`` cost of pasting bank entries whose lips have colours ``entries`` ``(N, 3)`` into output
-    frames whose footage's lips have colours ``reference`` ``(T, 3)`` (:meth:`MouthBank.light_at`):
+    """``(T, N)`` cost of pasting bank entries whose frames' light is ``entries`` ``(N, 3)`` into output
+    frames whose footage's light is ``reference`` ``(T, 3)`` (:meth:`MouthBank.light_at`):
     :data:`LIGHT_CM` per unit of the largest per-channel log colour ratio beyond :data:`LIGHT_TOLERANCE`,
     so a mouth of another take's light is only used when no other shape comes near."""
     entries, reference = (np.maximum(np.asarray(c, np.float64), 1.0) for c in (entries, reference))
@@ -207,7 +223,7 @@ def build_mouth_bank(
     video: Path, seq: TrackedSequence, model: FaceModel, frames: np.ndarray | None = None
 ) -> MouthBank | None:
     """Decode ``video`` and keep the mouth regions of ``frames`` (default :func:`bank_frames` over the
-    whole tracked sequence), at the footage's resolution within :data:`PATCH`, and the lip colour of every
+    whole tracked sequence), at the footage's resolution within :data:`PATCH`, and the light of every
     :data:`LIGHT_STEP`-th valid frame and of the kept ones; None when the mouth never opens."""
     from nvp.media import frames_at
     from renderer.crop import cut
@@ -229,10 +245,9 @@ def build_mouth_bank(
     patch = int(np.clip(16 * np.ceil(np.median(side) / 16), *PATCH))
     patches = np.empty((len(frames), patch, patch, 3), np.uint8)
     colours = np.empty((len(light), 3), np.float32)
+    skin = light_region(model)
     for i, img in enumerate(frames_at(video, light, seq.fps)):
-        h, w = img.shape[:2]
-        at = np.floor(px[i, lips]).astype(np.int64)
-        colours[i] = img[np.clip(at[:, 1], 0, h - 1), np.clip(at[:, 0], 0, w - 1)].mean(0)
+        colours[i] = light_colour(img, px[i, skin])
         k = int(np.searchsorted(frames, light[i]))
         if k < len(frames) and frames[k] == light[i]:
             t = torch.from_numpy(img).permute(2, 0, 1)[None].float()

@@ -26,7 +26,7 @@ from renderer.data import (
     sequence_boxes,
 )
 from renderer.masks import dilate
-from renderer.mouths import LIGHT_TOLERANCE, light_costs
+from renderer.mouths import light_costs
 from renderer.networks import fast_bf16, load_renderer
 from renderer.warp import mesh_edges, rigidity, sample_pixels, smooth, surface_points
 
@@ -54,6 +54,13 @@ out a dotted line there and with it 0.01-0.04 of these sharpness ratios.)"""
 INTERIOR_GAIN = (0.5, 2.0)
 """Range of the per-channel gain that puts a mouth-bank entry's interior into the rendered frame's colours
 (:meth:`FrameRenderer._in_frame_colours`)."""
+
+INTERIOR_TOLERANCE = 0.25
+"""Relative colour difference between a bank entry's lips and the rendered ones (per channel) left as it is
+(:meth:`FrameRenderer._in_frame_colours`): within one take the rendered lips differ from the bank's real
+ones by the networks' own error, which changes from frame to frame (gains on dfrf__cnn2 and
+edtalk__pose_source2, 5th-95th percentile, 0.92-1.10 and 0.94-1.21; following it within 15 % cost 0.08 dB
+of mouth-box PSNR on edtalk__pose_source2)."""
 
 WINDOW_MARGIN = 0.25
 """The networks run on the part of the crop around the painted lower face, grown by this fraction of the
@@ -326,11 +333,8 @@ class FrameRenderer:
         """Bank entry ``mouth``'s ``patch`` ``(3, P, P)`` with each colour channel scaled so that its lips
         have the rendered lips' mean colour (``render`` ``(3, S, S)`` in [0, 1] over ``geo``): a bank frame
         shot in other light (a later take, the camera's white balance or exposure drifting) would paste
-        teeth of another colour. Only the part of the gain beyond :data:`renderer.mouths.LIGHT_TOLERANCE` is
-        applied (within one take the rendered lips differ from the bank's real ones by the networks' own
-        error, which changes from frame to frame: gains on dfrf__cnn2 and edtalk__pose_source2, 5th-95th
-        percentile, 0.92-1.10 and 0.94-1.21; following it cost 0.08 dB of mouth-box PSNR on
-        edtalk__pose_source2), and it stays within :data:`INTERIOR_GAIN`."""
+        teeth of another colour. Only the part of the gain beyond :data:`INTERIOR_TOLERANCE` is applied, and
+        it stays within :data:`INTERIOR_GAIN`."""
         tri = geo.triangle_id
         lips = (tri >= 0) & self._lip_triangles[tri.clamp_min(0)]
         if int(lips.sum()) < 8:
@@ -339,7 +343,7 @@ class FrameRenderer:
         bank = sample_pixels(patch, pos).sum(-1)
         rendered = render[:, lips.to(render.device)].float().sum(-1).cpu()  # only the lips leave the device
         gain = (rendered * 255 / bank.clamp_min(1.0)).clamp(*INTERIOR_GAIN)
-        gain = gain / gain.clamp(1 / (1 + LIGHT_TOLERANCE), 1 + LIGHT_TOLERANCE)
+        gain = gain / gain.clamp(1 / (1 + INTERIOR_TOLERANCE), 1 + INTERIOR_TOLERANCE)
         return patch * gain[:, None, None]
 
     def _moved(

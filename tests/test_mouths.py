@@ -4,7 +4,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from renderer.mouths import LIGHT_CM, LIGHT_TOLERANCE, MouthBank, bank_frames, choose_entries, light_costs
+from renderer.mouths import (
+    LIGHT_CM,
+    LIGHT_TOLERANCE,
+    MouthBank,
+    bank_frames,
+    choose_entries,
+    light_colour,
+    light_costs,
+)
 
 
 def test_a_bank_keeps_open_mouths_spread_over_their_shapes():
@@ -94,5 +102,11 @@ def test_an_entry_shot_in_other_light_is_used_only_when_no_other_shape_comes_nea
     here = bank.light_at(np.array([20]))
     assert np.argmin(np.array([[0.10, 0.12, 0.08, 0.20]]) + light_costs(entries, here)) == 0
     assert np.argmin(np.array([[0.60, 0.70, 0.08, 0.20]]) + light_costs(entries, here)) == 2
+    # a frame's light is the median colour at the skin's vertices: a hair or a highlight does not count
+    image = np.zeros((10, 10, 3), np.uint8)
+    image[:] = daylight
+    image[2, 3] = 255
+    pixels = np.array([[3.5, 2.5], [5.2, 5.9], [7.0, 1.0]])
+    np.testing.assert_array_equal(light_colour(image, pixels), daylight)
     # a bank of the first format has no light: it loads, and nothing is charged for it (FrameRenderer)
     assert len(MouthBank(bank.frames, bank.patches, bank.pixels, bank.shapes).light_frames) == 0

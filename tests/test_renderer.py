@@ -652,8 +652,8 @@ def test_an_open_rendered_mouth_shows_the_person_s_own_interior_from_the_bank(fo
     from nvp.geometry import posed
     from renderer.gl import GLRasterizer
     from renderer.masks import dilate
-    from renderer.mouths import LIGHT_TOLERANCE, build_mouth_bank
-    from renderer.render import FrameRenderer
+    from renderer.mouths import build_mouth_bank
+    from renderer.render import INTERIOR_TOLERANCE, FrameRenderer
 
     path, seq = footage
     cache = build_cache(path, seq, face_model, TINY, np.arange(10), progress=False)
@@ -664,7 +664,7 @@ def test_an_open_rendered_mouth_shows_the_person_s_own_interior_from_the_bank(fo
     opened = posed(face_model.vertices(seq.identity, wide[None])[0], seq.rotation[5], seq.translation[5])
     bank = build_mouth_bank(path, seq, face_model, frames=np.array([2, 6]))
     assert bank.patches.shape == (2, 64, 64, 3) and bank.pixels.shape == (2, face_model.num_vertices, 2)
-    # the lips' colour of every 5th frame and of the entries' (the footage's light)
+    # the light of every 5th frame and of the entries' (the colour of the skin around the lips)
     np.testing.assert_array_equal(bank.light_frames, np.union1d(np.flatnonzero(seq.valid)[::5], [2, 6]))
     assert bank.light_colours.shape == (len(bank.light_frames), 3) and bank.light_colours.min() > 0
     lips = face_model.vertex_regions["lips"]  # the lips lie inside their patch, 1.6 mouth widths across
@@ -703,7 +703,7 @@ def test_an_open_rendered_mouth_shows_the_person_s_own_interior_from_the_bank(fo
     # the tint (0.5 on green, 1.6 on blue) is taken back to within the tolerance of each paste (both may
     # differ from the rendered lips by up to it)
     ratio = pasted[1][inner.numpy()].mean(0) / pasted[0][inner.numpy()].mean(0)
-    assert np.all(np.abs(np.log(ratio)) <= 2 * np.log(1 + LIGHT_TOLERANCE) + 0.02), ratio
+    assert np.all(np.abs(np.log(ratio)) <= 2 * np.log(1 + INTERIOR_TOLERANCE) + 0.02), ratio
 
 
 def test_a_render_of_the_footage_own_geometry_keeps_its_fine_detail(footage, face_model, tmp_path):
