@@ -4,16 +4,18 @@ The networks paint the mouth interior from a 16-channel texture at crop resoluti
 or pale band, because they change with every frame and the texture cannot hold them. The footage, though,
 shows this person's real teeth in every open-mouth frame. A *mouth bank* keeps a few dozen of those frames'
 mouth regions at the footage's resolution (chosen at fit time to cover the shapes the person's mouth takes); a
-rendered frame gets the interior of the bank frame whose inner lips are shaped most like the new geometry's,
+rendered frame gets the interior of a bank frame whose inner lips are shaped like the new geometry's and
+whose interior looks most like the networks' own soft one (:meth:`renderer.render.FrameRenderer.entry_costs`),
 moved onto it through the mouth-interior triangles (the same surface correspondence as :mod:`renderer.warp`),
 and pasted where the new geometry shows the interior (Video Rewrite, Bregler et al. 1997, did this for the
 whole mouth; here only the interior, inside the rendered lips). Footage cut from several takes, or whose light
 drifts, holds mouths of other colours: the bank records the footage's light (the colour of the skin around the
 lips), an entry shot in other light than the footage frame behind the output frame costs as much as a far
 shape (:func:`light_costs`), and the pasted interior takes the rendered lips' colour
-(:meth:`renderer.render.FrameRenderer._in_frame_colours`).
+(:meth:`renderer.render.FrameRenderer._colour_gain`).
 
-Pure functions for choosing frames and entries; :func:`build_mouth_bank` decodes the footage.
+Pure functions for choosing frames and entries (:class:`EntryChooser`: a stream's entries without flicker);
+:func:`build_mouth_bank` decodes the footage.
 Shapes: ``N`` bank entries, ``P`` patch side, ``M`` inner-lip vertices, ``V`` vertices, ``T`` frames.
 """
 
@@ -181,19 +183,21 @@ def light_costs(entries: np.ndarray, reference: np.ndarray) -> np.ndarray:
     return LIGHT_CM * np.maximum(ratio - np.log1p(LIGHT_TOLERANCE), 0.0)
 
 
-def choose_entries(distances: np.ndarray, switch: float = SWITCH_CM) -> np.ndarray:
-    """``(T,)`` bank entry per output frame minimising the summed shape distances ``(T, N)`` plus
-    ``switch`` per change of entry (Viterbi): the nearest entry each frame, without flicker between
-    near-equal ones."""
-    t, n = distances.shape
-    cost = distances[0].copy()
+def best_path(costs: np.ndarray, start: int | None = None, switch: float = SWITCH_CM) -> np.ndarray:
+    """``(T,)`` bank entry per output frame minimising the summed ``costs`` ``(T, N)`` plus ``switch`` per
+    change of entry (Viterbi), counting a change before the first frame too when it follows entry
+    ``start``: the best entry each frame, without flicker between near-equal ones."""
+    t, n = costs.shape
+    cost = costs[0].astype(np.float64)
+    if start is not None:
+        cost = cost + switch * (np.arange(n) != start)
     back = np.zeros((t, n), np.int64)
     for i in range(1, t):
         best = int(np.argmin(cost))
         stay = cost
         move = cost[best] + switch
         back[i] = np.where(stay <= move, np.arange(n), best)
-        cost = np.minimum(stay, move) + distances[i]
+        cost = np.minimum(stay, move) + costs[i]
     path = np.empty(t, np.int64)
     path[-1] = int(np.argmin(cost))
     for i in range(t - 1, 0, -1):
@@ -201,13 +205,31 @@ def choose_entries(distances: np.ndarray, switch: float = SWITCH_CM) -> np.ndarr
     return path
 
 
-def next_entry(current: int | None, distances: np.ndarray, switch: float = SWITCH_CM) -> int:
-    """The entry for the next frame of a stream (``distances`` ``(N,)``, its shape's to every entry) when
-    the future is unknown: the nearest one, unless ``current`` is within ``switch`` of it."""
-    best = int(np.argmin(distances))
-    if current is not None and distances[current] <= distances[best] + switch:
-        return current
-    return best
+class EntryChooser:
+    """Bank entries for a stream of output frames in order, without flicker: frame ``j``'s entry is decided
+    once the costs of ``lag`` more frames are known (:func:`best_path` over them, from the entry already
+    decided; fixed-lag Viterbi), so a renderer needs to hold only ``lag`` frames back. ``lag`` 0: the best
+    entry, unless the current one is within ``switch`` of it (``nvp live``, whose future is unknown)."""
+
+    def __init__(self, lag: int = 0, switch: float = SWITCH_CM) -> None:
+        self.lag, self.switch = lag, switch
+        self.current: int | None = None
+        self._window: list[np.ndarray] = []
+
+    def push(self, costs: np.ndarray) -> list[int]:
+        """Adds the next frame's ``(N,)`` costs; returns the entries decided by it (of earlier frames, in
+        order; none while fewer than ``lag`` frames are held)."""
+        self._window.append(np.asarray(costs, np.float64))
+        return [self._decide() for _ in range(len(self._window) - self.lag)]
+
+    def flush(self) -> list[int]:
+        """The entries of the frames still held (the stream has ended)."""
+        return [self._decide() for _ in range(len(self._window))]
+
+    def _decide(self) -> int:
+        self.current = int(best_path(np.stack(self._window), self.current, self.switch)[0])
+        self._window.pop(0)
+        return self.current
 
 
 def sequence_shapes(

@@ -5,13 +5,15 @@ from __future__ import annotations
 import copy
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import ExitStack
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 import torch
+import torch.nn.functional as F
+from kornia.filters import gaussian_blur2d
 
 from nvp.face_model import FaceModel
 from nvp.geometry import unposed
@@ -53,18 +55,68 @@ out a dotted line there and with it 0.01-0.04 of these sharpness ratios.)"""
 
 INTERIOR_GAIN = (0.5, 2.0)
 """Range of the per-channel gain that puts a mouth-bank entry's interior into the rendered frame's colours
-(:meth:`FrameRenderer._in_frame_colours`)."""
+(:meth:`FrameRenderer._colour_gain`)."""
 
 INTERIOR_TOLERANCE = 0.25
 """Relative colour difference between a bank entry's lips and the rendered ones (per channel) left as it is
-(:meth:`FrameRenderer._in_frame_colours`): within one take the rendered lips differ from the bank's real
+(:meth:`FrameRenderer._colour_gain`): within one take the rendered lips differ from the bank's real
 ones by the networks' own error, which changes from frame to frame (gains on dfrf__cnn2 and
 edtalk__pose_source2, 5th-95th percentile, 0.92-1.10 and 0.94-1.21; following it within 15 % cost 0.08 dB
 of mouth-box PSNR on edtalk__pose_source2)."""
 
+AGREEMENT_CM = 0.02
+"""Cost (cm of inner-lip shape distance, :meth:`FrameRenderer.entry_costs`) per level of 255 of root mean
+square difference between a mouth-bank entry's interior and the networks' soft interior. Chosen on open
+held-out frames (inner-lip gap above 30 % of the person's range) of edtalk__pose_source2,
+dfrf__cnn2 and wav2lipgfpgan kim (no test person), mouth-box PSNR: by shape 31.99 / 34.23 / 30.63 dB; by
+shape + 0.005 / 0.01 / 0.02 / 0.05 cm per level (of the 8 nearest shapes) 33.56 / 34.72 / 30.81, 33.70 /
+34.67 / 30.61, 33.45 / 34.87 / 30.64, 33.55 / 34.90 / 30.71; the difference alone (all 48 entries) 33.46 /
+35.04 / 30.82. The entries' spread is 44-64 levels per frame (median), so the difference decides among
+near shapes and the switch cost (:data:`renderer.mouths.SWITCH_CM`) is 2.5 levels."""
+
+CANDIDATES = 8
+"""Bank entries nearest in shape and light whose interior is compared with the networks' (~0.5 ms each):
+of 8, 12 or all 48 the same choices on the frames above but for 0.1 dB."""
+
+MOUTH_LAG = 3
+"""Output frames a stream renders ahead before it fixes a frame's mouth-bank entry
+(:class:`renderer.mouths.EntryChooser`), each held in memory until then. Over 250 frames of audio-driven
+dubs (edtalk__pose_source2, dfrf__cnn2) lag 0 / 1 / 3 / 6 / 12 chose 84-86 / 92-93 / 96-99 / 97-100 / 100 %
+of the whole clip's best path's entries (path cost +0.8 / +0.2 / 0.0 / 0.0 / 0 %)."""
+
 WINDOW_MARGIN = 0.25
 """The networks run on the part of the crop around the painted lower face, grown by this fraction of the
 crop side (see :func:`network_window`): the upper face is never pasted, so it is not rendered either."""
+
+
+@dataclass
+class FaceRender:
+    """A frame's networks pass (:meth:`FrameRenderer.prepare`), awaiting its mouth interior and paste
+    (:meth:`FrameRenderer.composite`). The fields after ``slices`` are None when the face lies outside
+    the frame.
+
+    Attributes:
+        frame: ``(H, W, 3)`` uint8 the footage frame; index: its footage index.
+        vertices_cam: ``(V, 3)`` the rendered geometry.
+        slices: the frame rows and columns under the crop box (the only pixels read and written).
+        image: ``(3, h, w)`` float the frame there.
+        box: ``(3,)`` the crop box relative to ``slices``.
+        geo: the rasterized geometry; crop: ``(3, S, S)`` the footage crop in [0, 1].
+        render: ``(3, S, S)`` the networks' crop in [0, 1] (the crop itself outside their window).
+        paint: ``(1, 1, S, S)`` the painted lower face; moved: the detail moved onto it, if any.
+    """
+
+    frame: np.ndarray
+    index: int
+    vertices_cam: np.ndarray
+    slices: tuple[slice, slice]
+    image: torch.Tensor | None = None
+    box: np.ndarray | None = None
+    geo: FrameGeometry | None = None
+    crop: torch.Tensor | None = None
+    render: torch.Tensor | None = None
+    paint: torch.Tensor | None = None
+    moved: MovedDetail | None = None
 
 
 class FrameRenderer:
@@ -100,6 +152,9 @@ class FrameRenderer:
         self.mouths = MouthBank.load(bank) if interiors and bank.exists() else None
         if self.mouths is not None:
             self._patches = torch.from_numpy(self.mouths.patches).permute(0, 3, 1, 2)  # uint8
+            # halved and quartered, to compare an interior with the networks' at their resolution
+            half = F.avg_pool2d(self._patches.float(), 2)
+            self._pyramid = [half, F.avg_pool2d(half, 2)]
             self._inner = interior_vertices(model)
             lips = model.vertex_regions["lips"]
             self._lip_triangles = torch.from_numpy(
@@ -166,19 +221,35 @@ class FrameRenderer:
         ``original_cam`` (or ``vertices_cam`` when there is none). The mouth interior gets none.
 
         With a mouth bank (``self.mouths``), where the new geometry shows the mouth interior the interior
-        of bank entry ``mouth`` is pasted, moved onto it (default: the entry whose inner lips are shaped
-        most like ``vertices_cam``'s; a dub passes a flicker-free choice,
-        :func:`renderer.mouths.choose_entries`).
+        of bank entry ``mouth`` is pasted, moved onto it (default: the best entry for this frame alone,
+        :meth:`entry_costs`; a stream of frames chooses without flicker,
+        :class:`renderer.mouths.EntryChooser`).
 
         ``with_weight``: also return the ``(H, W)`` float32 weight of the render in the output (0 = the
-        footage's own pixel), i.e. where nvp changed the picture."""
+        footage's own pixel), i.e. where nvp changed the picture.
+
+        The same as :meth:`composite` of :meth:`prepare`, the two steps a caller choosing the bank entry
+        from :meth:`entry_costs` takes."""
+        face = self.prepare(frame, index, vertices_cam, original_cam, source)
+        return self.composite(face, mouth, with_weight)
+
+    @torch.inference_mode()
+    def prepare(
+        self,
+        frame: np.ndarray,
+        index: int,
+        vertices_cam: np.ndarray,
+        original_cam: np.ndarray | None = None,
+        source: tuple[np.ndarray, int, np.ndarray] | None = None,
+    ) -> FaceRender:
+        """The networks' render of ``vertices_cam`` over footage frame ``index`` and what the paste needs
+        (arguments as :meth:`render`), before a mouth-bank entry is chosen."""
         # only the frame pixels under the crop box are read and written: they are taken out of the frame
         # (2 pixels more for the bilinear samples) and every pixel position below is relative to them
         # (box and principal point shifted alike, so the crop camera is the same)
         ys, xs = box_slices(self.boxes[index], *frame.shape[:2], grow=2)
         if ys.stop <= ys.start or xs.stop <= xs.start:  # the face is outside the frame: nothing to paint
-            out = frame.copy()
-            return (out, np.zeros(frame.shape[:2], np.float32)) if with_weight else out
+            return FaceRender(frame, index, vertices_cam, (ys, xs))
         offset = np.array([xs.start, ys.start, 0.0])
         box = self.boxes[index] - offset
         f, c = self.seq.focal, self.seq.center - offset[:2]
@@ -215,29 +286,112 @@ class FrameRenderer:
                 source_in[None, ..., rows, cols].to(dev) if self.net.source_input else None,
             )
         inside = inside.float()
-        keep = 1 - paint  # where the paste adds the footage's own full-resolution detail
         if self.detail:  # the footage's band of skin detail too where the surface moved rigidly
             moved = self._band(moved, inside, (rows, cols), geo, src_geo, vertices_cam, index, source)
         final = crop.to(inside).clone()  # outside the window the crop itself (its paste weight is 0)
         final[..., rows, cols] = inside
-        weight = self.weight * region_weight(paint)
-        pasted = paste_region(
+        return FaceRender(
+            frame,
+            index,
+            vertices_cam,
+            (ys, xs),
             img,
-            final[0].cpu() * 255,
             box,
-            weight,
-            detail=(crop[0] * 255, keep),
-            moved=moved if self.detail else None,
-            paint=paint,
-            interior=self._interior(geo, vertices_cam, index, mouth, final[0]),
+            geo,
+            crop[0],
+            final[0],
+            paint,
+            moved if self.detail else None,
         )
-        # only the pixels under the crop box change: the rest of the uint8 frame is copied as it is
+
+    @torch.inference_mode()
+    def composite(
+        self, face: FaceRender, mouth: int | None = None, with_weight: bool = False
+    ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+        """:meth:`prepare`'s render pasted into its footage frame with bank entry ``mouth``'s interior
+        (default: the entry of least :meth:`entry_costs`); as :meth:`render` returns."""
+        frame = face.frame
         out, painted = frame.copy(), np.zeros(frame.shape[:2], np.float32)
-        if pasted is not None:
-            pixels, alpha, (rows, cols) = pasted
-            out[ys, xs][rows, cols] = pixels.clamp(0, 255).round().byte().permute(1, 2, 0).numpy()
-            painted[ys, xs][rows, cols] = alpha.numpy()
+        if face.geo is not None:
+            interior = None
+            window = self._interior_window(face.geo) if self.mouths is not None else None
+            if window is not None:
+                if mouth is None:
+                    mouth = int(np.argmin(self.entry_costs(face)))
+                interior = self._interior(face.geo, window, mouth, face.render)
+            # only the lower face and its surroundings are pasted, the footage keeping its full-resolution
+            # detail where the paste weight is below 1 (1 - paint)
+            pasted = paste_region(
+                face.image,
+                face.render.cpu() * 255,
+                face.box,
+                self.weight * region_weight(face.paint),
+                detail=(face.crop * 255, 1 - face.paint),
+                moved=face.moved,
+                paint=face.paint,
+                interior=interior,
+            )
+            # only the pixels under the crop box change: the rest of the uint8 frame is copied as it is
+            if pasted is not None:
+                ys, xs = face.slices
+                pixels, alpha, (rows, cols) = pasted
+                out[ys, xs][rows, cols] = pixels.clamp(0, 255).round().byte().permute(1, 2, 0).numpy()
+                painted[ys, xs][rows, cols] = alpha.numpy()
         return (out, painted) if with_weight else out
+
+    def entry_costs(self, face: FaceRender) -> np.ndarray:
+        """``(N,)`` how well each mouth-bank entry suits :meth:`prepare`'s ``face``: :meth:`mouth_costs`
+        (the inner lips' shape, the light) plus, where the face shows its mouth interior, for the
+        :data:`CANDIDATES` best of them, :data:`AGREEMENT_CM` per level of how far the entry's interior,
+        moved onto the face, lies from the networks' own soft interior (:meth:`_disagreement`); the others
+        cost infinity. The networks were trained on this person's footage, so their blurred interior
+        says where the teeth, tongue and shadow lie for this geometry, which the inner lips' shape alone
+        does not (on open held-out frames, the entry chosen by shape keeps 31.99 / 34.23 / 30.63 dB of
+        mouth-box PSNR on edtalk__pose_source2, dfrf__cnn2, wav2lipgfpgan kim, the best one 35.71 / 35.81 /
+        32.74)."""
+        pose = self.seq.rotation[face.index], self.seq.translation[face.index]
+        shape = unposed(face.vertices_cam[self._inner], *pose)[None].astype(np.float32)
+        costs = self.mouth_costs(shape, np.array([face.index]))[0]
+        window = None if face.geo is None else self._interior_window(face.geo)
+        if window is None:
+            return costs
+        candidates = np.argsort(costs, kind="stable")[:CANDIDATES]
+        out = np.full_like(costs, np.inf)
+        out[candidates] = costs[candidates] + AGREEMENT_CM * self._disagreement(face, window, candidates)
+        return out
+
+    def _disagreement(
+        self, face: FaceRender, window: tuple[int, int, int, int], entries: np.ndarray
+    ) -> np.ndarray:
+        """``(K,)`` root mean square difference (levels of 255) between each of bank ``entries``' interior
+        moved onto ``face`` (in the frame's colours, :meth:`_colour_gain`) and the networks' render, inside
+        the mouth interior, both blurred by a crop pixel (the networks' interior is soft)."""
+        geo, render = face.geo, face.render
+        r0, r1, c0, c1 = window
+        size = geo.mouth.shape[-1]
+        pad = 3
+        r0p, r1p, c0p, c1p = max(r0 - pad, 0), min(r1 + pad, size), max(c0 - pad, 0), min(c1 + pad, size)
+        inside = geo.mouth[0, 0, r0p:r1p, c0p:c1p] > 0.5
+        tri, bary = geo.triangle_id[r0p:r1p, c0p:c1p], geo.barycentric[r0p:r1p, c0p:c1p]
+        moved = []
+        for e in entries:
+            e = int(e)
+            pos = self.mouths.positions(e, tri, bary, self._triangles)
+            # patch pixels per crop pixel: read from the level of the patch's pyramid that matches it
+            step = (pos[:, 1:] - pos[:, :-1]).norm(dim=-1)[inside[:, 1:] & inside[:, :-1]]
+            scale = float(step.median()) if len(step) else 1.0
+            level = int(np.clip(np.log2(max(scale, 1.0)), 0, len(self._pyramid)))
+            patch = self._patches[e].float() if level == 0 else self._pyramid[level - 1][e]
+            gain = self._colour_gain(e, geo, render)
+            moved.append(sample_pixels(patch, pos / 2**level) * gain[:, None, None])
+        blurred = gaussian_blur2d(
+            torch.cat([torch.stack(moved), render[None, :, r0p:r1p, c0p:c1p].float().cpu() * 255]),
+            (7, 7),
+            (1.0, 1.0),
+            "replicate",
+        )
+        diff = ((blurred[:-1] - blurred[-1:]) ** 2).mean(1)[:, inside]
+        return diff.mean(1).sqrt().numpy() if diff.shape[1] else np.zeros(len(entries))
 
     def _band(
         self,
@@ -295,21 +449,10 @@ class FrameRenderer:
         moving = torch.where(surface, 1 - rigid_px, torch.zeros_like(rigid_px))
         return background * (1 - dilate(moving[None, None], reach)[0, 0])
 
-    def _interior(
-        self,
-        geo: FrameGeometry,
-        vertices_cam: np.ndarray,
-        index: int,
-        mouth: int | None,
-        render: torch.Tensor,
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, tuple[int, int]] | None:
-        """The ``interior`` argument of :func:`renderer.crop.paste_region`: bank entry ``mouth``'s patch
-        ``(3, P, P)`` in this frame's colours (:meth:`_in_frame_colours`, against ``render`` ``(3, S, S)``,
-        the rendered crop in [0, 1]), and over the crop window around the interior, the patch pixel at each
-        crop pixel ``(h, w, 2)``, the interior mask ``(h, w)`` and the window's first row and column; None
-        without a bank or when no interior shows."""
-        if self.mouths is None:
-            return None
+    @staticmethod
+    def _interior_window(geo: FrameGeometry) -> tuple[int, int, int, int] | None:
+        """First and last-but-one rows and columns of the crop around the mouth interior ``geo`` shows (a
+        pixel more each side), None when it shows none."""
         inside = geo.mouth[0, 0]
         rows = torch.nonzero(inside.amax(1))[:, 0]
         if len(rows) == 0:
@@ -318,33 +461,36 @@ class FrameRenderer:
         size = inside.shape[0]
         r0, r1 = max(int(rows[0]) - 1, 0), min(int(rows[-1]) + 2, size)
         c0, c1 = max(int(cols[0]) - 1, 0), min(int(cols[-1]) + 2, size)
-        if mouth is None:
-            pose = self.seq.rotation[index], self.seq.translation[index]
-            shape = unposed(vertices_cam[self._inner], *pose)
-            mouth = int(np.argmin(self.mouth_costs(shape[None].astype(np.float32), np.array([index]))[0]))
+        return r0, r1, c0, c1
+
+    def _interior(
+        self, geo: FrameGeometry, window: tuple[int, int, int, int], mouth: int, render: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, tuple[int, int]]:
+        """The ``interior`` argument of :func:`renderer.crop.paste_region`: bank entry ``mouth``'s patch
+        ``(3, P, P)`` in this frame's colours (:meth:`_colour_gain`, against ``render`` ``(3, S, S)``, the
+        rendered crop in [0, 1]), and over the crop ``window`` around the interior
+        (:meth:`_interior_window`), the patch pixel at each crop pixel ``(h, w, 2)``, the interior mask
+        ``(h, w)`` and the window's first row and column."""
+        r0, r1, c0, c1 = window
         tri, bary = geo.triangle_id[r0:r1, c0:c1], geo.barycentric[r0:r1, c0:c1]
         pos = self.mouths.positions(mouth, tri, bary, self._triangles)
-        patch = self._in_frame_colours(self._patches[mouth].float(), mouth, geo, render)
-        return patch, pos, inside[r0:r1, c0:c1], (r0, c0)
+        patch = self._patches[mouth].float() * self._colour_gain(mouth, geo, render)[:, None, None]
+        return patch, pos, geo.mouth[0, 0, r0:r1, c0:c1], (r0, c0)
 
-    def _in_frame_colours(
-        self, patch: torch.Tensor, mouth: int, geo: FrameGeometry, render: torch.Tensor
-    ) -> torch.Tensor:
-        """Bank entry ``mouth``'s ``patch`` ``(3, P, P)`` with each colour channel scaled so that its lips
-        have the rendered lips' mean colour (``render`` ``(3, S, S)`` in [0, 1] over ``geo``): a bank frame
-        shot in other light (a later take, the camera's white balance or exposure drifting) would paste
-        teeth of another colour. Only the part of the gain beyond :data:`INTERIOR_TOLERANCE` is applied, and
-        it stays within :data:`INTERIOR_GAIN`."""
+    def _colour_gain(self, mouth: int, geo: FrameGeometry, render: torch.Tensor) -> torch.Tensor:
+        """``(3,)`` per-channel gain that gives bank entry ``mouth``'s lips the rendered lips' mean colour
+        (``render`` ``(3, S, S)`` in [0, 1] over ``geo``): a bank frame shot in other light (a later take,
+        the camera's white balance or exposure drifting) would paste teeth of another colour. Only the part
+        of the gain beyond :data:`INTERIOR_TOLERANCE` is kept, within :data:`INTERIOR_GAIN`."""
         tri = geo.triangle_id
         lips = (tri >= 0) & self._lip_triangles[tri.clamp_min(0)]
         if int(lips.sum()) < 8:
-            return patch
+            return torch.ones(3)
         pos = self.mouths.positions(mouth, tri[lips], geo.barycentric[lips], self._triangles)
-        bank = sample_pixels(patch, pos).sum(-1)
+        bank = sample_pixels(self._patches[mouth], pos).sum(-1)
         rendered = render[:, lips.to(render.device)].float().sum(-1).cpu()  # only the lips leave the device
         gain = (rendered * 255 / bank.clamp_min(1.0)).clamp(*INTERIOR_GAIN)
-        gain = gain / gain.clamp(1 / (1 + INTERIOR_TOLERANCE), 1 + INTERIOR_TOLERANCE)
-        return patch * gain[:, None, None]
+        return gain / gain.clamp(1 / (1 + INTERIOR_TOLERANCE), 1 + INTERIOR_TOLERANCE)
 
     def _moved(
         self,
@@ -409,7 +555,6 @@ def render_frames(
     progress: bool = True,
     desc: str = "render",
     workers: int | None = None,
-    mouths: Sequence[int] | None = None,
     sources: Callable[[int], tuple[np.ndarray, int, np.ndarray]] | None = None,
 ) -> Iterator[tuple[np.ndarray, dict[str, np.ndarray]]]:
     """The one render loop: footage ``frames`` (``(H, W, 3)`` uint8, one per entry of ``indices``, the
@@ -418,68 +563,105 @@ def render_frames(
     or the consumer stopping).
 
     A variant ``None`` re-renders the frame from its own tracking (re-creation); a :data:`Geometry` renders
-    ``geometry(j, index, tracked_cam)`` and the replaced region also covers the tracked face (a dub), with
-    mouth-bank entry ``mouths[j]`` in its open mouth when given (see :meth:`FrameRenderer.render`).
+    ``geometry(j, index, tracked_cam)`` and the replaced region also covers the tracked face (a dub).
     ``sources(j)``: the ``source`` of frame ``j``'s fine detail (default: the footage frame itself), e.g. an
-    evaluation that must not move the real frame's own detail onto its re-creation.
+    evaluation that must not move the real frame's own detail onto its re-creation. With a mouth bank,
+    each variant's open mouths get their bank entries from an :class:`renderer.mouths.EntryChooser` over
+    :meth:`FrameRenderer.entry_costs` (:data:`MOUTH_LAG` frames ahead), so the teeth do not flicker.
 
     On the CPU, ``workers`` frames are rendered at once, each by its own thread and renderer
     (:meth:`FrameRenderer.twin`) on one PyTorch thread, while the caller consumes (encodes) the previous
-    ones. Default: one per core PyTorch would use (``NVP_THREADS`` / ``OMP_NUM_THREADS`` fix it). Per-frame
-    work is small and partly single-threaded (rasterizing, pasting), so frames in parallel use two cores
-    far better than two threads inside each frame (measured on a 2-core EPYC, 512² dub: one frame on two
-    threads 56.7 ms, two frames on one thread each 30.5 ms per frame), and a single-threaded worker has no
-    OpenMP barriers that stall when another process takes a core. On a GPU, one frame at a time."""
+    ones: first the networks (:meth:`FrameRenderer.prepare`), then, once the entry is chosen, the paste
+    (:meth:`FrameRenderer.composite`). Default: one per core PyTorch would use (``NVP_THREADS`` /
+    ``OMP_NUM_THREADS`` fix it). Per-frame work is small and partly single-threaded (rasterizing,
+    pasting), so frames in parallel use two cores far better than two threads inside each frame (measured
+    on a 2-core EPYC, 512² dub: one frame on two threads 56.7 ms, two frames on one thread each 30.5 ms per
+    frame), and a single-threaded worker has no OpenMP barriers that stall when another process takes a
+    core. On a GPU, one frame at a time."""
     from tqdm import tqdm
 
     from nvp.threads import frame_workers
+    from renderer.mouths import EntryChooser
 
     n = 1 if str(fr.device) != "cpu" else (workers or frame_workers())
     bar = tqdm(total=len(indices), desc=desc, unit="frame", disable=not progress)
+    choosers = {name: EntryChooser(MOUTH_LAG) for name in variants} if fr.mouths is not None else None
 
-    def job(renderer: FrameRenderer, j: int, k: int, frame: np.ndarray) -> dict[str, np.ndarray]:
+    def prepare(renderer: FrameRenderer, j: int, k: int, frame: np.ndarray) -> dict[str, tuple]:
         tracked = renderer.tracked(k)
         source = None if sources is None else sources(j)
-        return {
-            name: renderer.render(frame, k, tracked, source=source)
+        faces = {
+            name: renderer.prepare(frame, k, tracked, source=source)
             if geo is None
-            else renderer.render(
-                frame,
-                k,
-                geo(j, k, tracked),
-                tracked,
-                source=source,
-                mouth=None if mouths is None else mouths[j],
-            )
+            else renderer.prepare(frame, k, geo(j, k, tracked), tracked, source=source)
             for name, geo in variants.items()
         }
+        return {name: (face, choosers and renderer.entry_costs(face)) for name, face in faces.items()}
 
     with ExitStack() as stack:
         stack.callback(bar.close)
-        if n == 1:
-            for j, (k, frame) in enumerate(zip(indices, frames, strict=False)):
-                yield frame, job(fr, j, int(k), frame)
-                bar.update(1)
-            return
         idle = [fr] + [stack.enter_context(fr.twin()) for _ in range(n - 1)]
-        pool = stack.enter_context(ThreadPoolExecutor(n, initializer=torch.set_num_threads, initargs=(1,)))
-        stack.callback(pool.shutdown, cancel_futures=True)  # runs first: nothing new starts on an error
+        if n == 1:  # in this thread (a profiler sees it; a GPU renders one frame at a time anyway)
+            pool = _InThisThread()
+        else:
+            pool = ThreadPoolExecutor(n, initializer=torch.set_num_threads, initargs=(1,))
+            stack.enter_context(pool)
+            stack.callback(pool.shutdown, cancel_futures=True)  # runs first: nothing new starts on an error
 
-        def run(j: int, k: int, frame: np.ndarray) -> dict[str, np.ndarray]:
+        def networks(j: int, k: int, frame: np.ndarray) -> dict[str, tuple]:
             renderer = idle.pop()  # list.pop/append are atomic; at most n jobs run, so one is always free
             try:
-                return job(renderer, j, k, frame)
+                return prepare(renderer, j, k, frame)
             finally:
                 idle.append(renderer)
 
-        pending: deque = deque()
-        for j, (k, frame) in enumerate(zip(indices, frames, strict=False)):
-            pending.append((frame, pool.submit(run, j, int(k), frame)))
-            if len(pending) > n:
-                first, done = pending.popleft()
-                yield first, done.result()
+        def composite(faces: dict[str, tuple], entries: dict[str, int | None]) -> dict[str, np.ndarray]:
+            return {name: fr.composite(face, entries[name]) for name, (face, _) in faces.items()}
+
+        started: deque = deque()  # (frame, networks' future), in order
+        waiting: deque = deque()  # (frame, prepared faces) whose bank entries are not fixed yet
+        pasting: deque = deque()  # (frame, composite's future)
+
+        def choose(item: tuple[np.ndarray, dict[str, tuple]] | None) -> None:
+            """Hands the frames whose bank entries ``item`` (the next frame and its prepared faces) fixes
+            to the paste; all frames still waiting when ``item`` is None (the end)."""
+            if item is not None:
+                waiting.append(item)
+            if choosers is None:
+                fixed = {name: [None] * len(waiting) for name in variants}
+            elif item is None:
+                fixed = {name: c.flush() for name, c in choosers.items()}
+            else:
+                fixed = {name: choosers[name].push(item[1][name][1]) for name in variants}
+            for entries in zip(*fixed.values(), strict=True):
+                frame, prepared = waiting.popleft()
+                chosen = dict(zip(variants, entries, strict=True))
+                pasting.append((frame, pool.submit(composite, prepared, chosen)))
+
+        def done(limit: int) -> Iterator[tuple[np.ndarray, dict[str, np.ndarray]]]:
+            while len(pasting) > limit:
+                frame, future = pasting.popleft()
+                yield frame, future.result()
                 bar.update(1)
-        while pending:
-            first, done = pending.popleft()
-            yield first, done.result()
-            bar.update(1)
+
+        for j, (k, frame) in enumerate(zip(indices, frames, strict=False)):
+            started.append((frame, pool.submit(networks, j, int(k), frame)))
+            while len(started) > n - 1:
+                first, future = started.popleft()
+                choose((first, future.result()))
+                yield from done(n - 1)
+        while started:
+            first, future = started.popleft()
+            choose((first, future.result()))
+        choose(None)
+        yield from done(0)
+
+
+class _InThisThread:
+    """An executor that runs each job when it is submitted, in the calling thread."""
+
+    @staticmethod
+    def submit(fn: Callable, *args) -> Future:
+        done: Future = Future()
+        done.set_result(fn(*args))
+        return done

@@ -32,6 +32,7 @@ STAGES = {
     "detail transfer": ("renderer/render.py", "_moved"),
     "detail band": ("renderer/render.py", "_band"),
     "crop": ("renderer/crop.py", "cut"),
+    "teeth choice": ("renderer/render.py", "entry_costs"),
     "paste": ("renderer/crop.py", "paste_region"),
     "encode": ("nvp/media.py", "write"),
     "audio → expressions": ("nvp/person.py", "predict_expressions"),

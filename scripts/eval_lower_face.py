@@ -7,7 +7,9 @@ held-out frame ``t`` is re-created several ways and compared with the real frame
 - the *painted region* (where nvp's render weighs ≥ 0.5 in the output) and
 - the *mouth box* (mediapipe lip landmarks of the real frame, grown by 60 % of the mouth width); its
   sharpness ratios are pooled: the high-frequency (Laplacian) energy of all evaluated frames over the real
-  frames' (1.0 = as much fine detail as the footage):
+  frames' (1.0 = as much fine detail as the footage); ``psnr_mouth_open``: the mouth box's PSNR over the
+  frames whose real mouth is open (inner-lip gap above :data:`OPEN` of the training part's range), where
+  the mouth interior shows:
 
 | variant | geometry | fine detail |
 |---|---|---|
@@ -52,6 +54,7 @@ VARIANTS = (
     "retrieval",
 )
 OPTIMISTIC = {"detail_same", "dub"}
+OPEN = 0.3
 
 
 def _style_and_audio_expressions(video: Path, seq, split: int, cache: Path):
@@ -162,6 +165,10 @@ def evaluate(
     crops: dict[int, list[np.ndarray]] = {}
     gap = model.inner_lip_gap(seq.identity, seq.expression)
     picks = {int(test[np.argmax(gap[test])]), int(test[np.argmin(gap[test])]), int(test[len(test) // 2])}
+    # frames whose real mouth is open (inner-lip gap above 30 % of the training part's 5th-95th range):
+    # where the mouth interior, teeth and tongue, shows
+    lo, hi = np.percentile(gap[train_idx], [5, 95])
+    is_open = gap > lo + OPEN * (hi - lo)
 
     def frame_at(i: int) -> np.ndarray:
         return next(iter(frames_at(video, np.array([i]), seq.fps)))
@@ -207,6 +214,7 @@ def evaluate(
                         "psnr_mouth": masked_psnr(img, real, in_box),
                         "ssim_mouth": masked_ssim(img, real, in_box),
                         "seam_ratio": seam_gradient_ratio(img, real, weight),
+                        "psnr_mouth_open": masked_psnr(img, real, in_box) if is_open[t] else np.nan,
                     }
                 )
             if t in picks:
@@ -215,6 +223,7 @@ def evaluate(
         "video": video.name,
         "size": f"{seq.width}x{seq.height}",
         "test_frames": len(rows["render"]),
+        "open_frames": int(np.isfinite([r["psnr_mouth_open"] for r in rows["render"]]).sum()),
         **{k: whole[k] for k in ("init", "steps", "train_minutes", "psnr_full", "psnr_crop") if k in whole},
     }
     real_energy = np.array(energies["real"]).reshape(-1, 2).sum(0)

@@ -7,9 +7,10 @@ import numpy as np
 from renderer.mouths import (
     LIGHT_CM,
     LIGHT_TOLERANCE,
+    EntryChooser,
     MouthBank,
     bank_frames,
-    choose_entries,
+    best_path,
     light_colour,
     light_costs,
 )
@@ -42,9 +43,18 @@ def test_entries_follow_the_nearest_shape_without_flicker():
     d[20:, 2] = 0.0
     nearest = d.argmin(1)
     assert (np.diff(nearest[:20]) != 0).sum() >= 5  # per-frame nearest flickers
-    path = choose_entries(d, switch=0.05)
+    path = best_path(d, switch=0.05)
     assert len(set(path[:20])) == 1 and (path[20:] == 2).all()
-    np.testing.assert_array_equal(choose_entries(d, switch=0.0), nearest)
+    np.testing.assert_array_equal(best_path(d, switch=0.0), nearest)
+    # a stream that fixes each frame's entry 6 frames later, from the entry before it, chooses the same
+    for lag in (6, 40):
+        chooser = EntryChooser(lag, switch=0.05)
+        streamed = [e for row in d for e in chooser.push(row)]
+        assert len(streamed) == max(0, len(d) - lag)
+        np.testing.assert_array_equal(streamed + chooser.flush(), path)
+    # the switch before the first frame counts from the entry a stream is on
+    assert best_path(np.array([[0.03, 1.0, 0.0]]), start=0, switch=0.05)[0] == 0
+    assert best_path(np.array([[0.03, 1.0, 0.0]]), start=None, switch=0.05)[0] == 2
 
 
 def test_a_bank_saves_and_loads(tmp_path):
@@ -63,12 +73,13 @@ def test_a_bank_saves_and_loads(tmp_path):
     assert d.shape == (2, 2) and np.allclose(np.diag(d), 0) and d[0, 1] == d[1, 0] > 0
 
 
-def test_a_stream_keeps_its_entry_until_another_is_clearly_nearer():
-    from renderer.mouths import next_entry
-
-    assert next_entry(None, np.array([0.3, 0.1, 0.2])) == 1
-    assert next_entry(2, np.array([0.3, 0.1, 0.12]), switch=0.05) == 2  # within the switch cost: kept
-    assert next_entry(2, np.array([0.3, 0.1, 0.2]), switch=0.05) == 1
+def test_a_stream_without_lookahead_keeps_its_entry_until_another_is_clearly_nearer():
+    chooser = EntryChooser(0, switch=0.05)
+    assert chooser.push(np.array([0.3, 0.2, 0.1])) == [2]
+    assert chooser.push(np.array([0.3, 0.1, 0.12])) == [2]  # within the switch cost: kept
+    assert chooser.push(np.array([0.3, 0.1, 0.2])) == [1]
+    assert chooser.push(np.array([np.inf, 0.3, np.inf])) == [1]  # entries not compared cost infinity
+    assert chooser.flush() == []
 
 
 def test_an_entry_shot_in_other_light_is_used_only_when_no_other_shape_comes_near(tmp_path):

@@ -610,12 +610,14 @@ def test_bfloat16_rendering_stays_within_a_few_levels_of_float32(footage, face_m
 
 def test_frames_rendered_in_parallel_equal_one_at_a_time_in_order(footage, face_model, tmp_path):
     from nvp.geometry import posed
-    from renderer.render import FrameRenderer, render_frames
+    from renderer.mouths import EntryChooser, build_mouth_bank
+    from renderer.render import MOUTH_LAG, FrameRenderer, render_frames
 
     path, seq = footage
     cache = build_cache(path, seq, face_model, TINY, np.arange(10), progress=False)
     cfg = RendererTrainConfig(steps=10, lr=3e-3, init=None, checkpoint_every=10**6, preview_every=10**6)
     train_renderer(cache, cfg, tmp_path / "r", progress=False, preset=TINY)
+    build_mouth_bank(path, seq, face_model, frames=np.array([2, 6, 9])).save(tmp_path / "r" / "mouths")
     frames = list(iter_frames(path))
     order = [3, 11, 0, 7, 7, 5, 10, 1, 2]
 
@@ -628,6 +630,15 @@ def test_frames_rendered_in_parallel_equal_one_at_a_time_in_order(footage, face_
     with FrameRenderer(tmp_path / "r", face_model, seq) as fr:
         one = list(render_frames(fr, (frames[k] for k in order), order, variants, False, workers=1))
         two = list(render_frames(fr, (frames[k] for k in order), order, variants, False, workers=3))
+        # the dub's open mouths got the bank entries a stream chooser fixes MOUTH_LAG frames later
+        faces = [
+            fr.prepare(frames[k], k, opened(j, k, fr.tracked(k)), fr.tracked(k)) for j, k in enumerate(order)
+        ]
+        chooser = EntryChooser(MOUTH_LAG)
+        entries = [e for face in faces for e in chooser.push(fr.entry_costs(face))] + chooser.flush()
+        for face, entry, (_, made) in zip(faces, entries, one, strict=True):
+            np.testing.assert_array_equal(fr.composite(face, entry), made["dub"])
+        assert any(fr._interior_window(face.geo) is not None for face in faces)  # some mouths were open
 
         def broken(j: int, k: int, tracked: np.ndarray) -> np.ndarray:
             if j == 4:
@@ -704,6 +715,52 @@ def test_an_open_rendered_mouth_shows_the_person_s_own_interior_from_the_bank(fo
     # differ from the rendered lips by up to it)
     ratio = pasted[1][inner.numpy()].mean(0) / pasted[0][inner.numpy()].mean(0)
     assert np.all(np.abs(np.log(ratio)) <= 2 * np.log(1 + INTERIOR_TOLERANCE) + 0.02), ratio
+
+
+def test_the_bank_entry_whose_interior_looks_like_the_networks_own_is_chosen(
+    footage, face_model, tmp_path, monkeypatch
+):
+    """Two bank entries of the same inner-lip shape and light: the one whose interior agrees with the
+    networks' soft interior (here: all grey) wins, and only the nearest ``CANDIDATES`` are compared."""
+    import renderer.render as render_module
+    from nvp.geometry import posed
+    from renderer.mouths import build_mouth_bank
+    from renderer.networks import make_renderer, save_renderer
+    from renderer.render import FrameRenderer
+
+    path, seq = footage
+    preset = replace(TINY, crop=64, source_input=False)
+    save_renderer(make_renderer(preset), tmp_path, preset, {})
+    k = face_model.exp_basis.shape[0]
+    wide = 4.0 * np.eye(k, dtype=np.float32)[np.argmax(face_model.inner_lip_gap(seq.identity, np.eye(k)))]
+    opened = posed(face_model.vertices(seq.identity, wide[None])[0], seq.rotation[5], seq.translation[5])
+    bank = build_mouth_bank(path, seq, face_model, frames=np.array([2, 6]))
+    bank.shapes[1], bank.pixels[1] = bank.shapes[0], bank.pixels[0]  # only their interiors differ
+    grey = np.array([120, 100, 90], np.uint8)
+    bank.patches[0], bank.patches[1] = (0, 255, 0), grey
+    bank.save(tmp_path / "mouths")
+
+    class Flat:  # networks that paint everything grey
+        source_input = False
+
+        def __call__(self, uv, mask, *rest):
+            return None, torch.from_numpy(grey / 255).float().view(1, 3, 1, 1).expand(1, 3, *mask.shape[-2:])
+
+    frame = list(iter_frames(path))[5]
+    with FrameRenderer(tmp_path, face_model, seq) as fr:
+        fr.net = Flat()
+        face = fr.prepare(frame, 5, opened, fr.tracked(5))
+        window = fr._interior_window(face.geo)
+        assert window is not None and (face.geo.mouth > 0.5).sum() >= 2  # the interior shows
+        apart = fr._disagreement(face, window, np.array([0, 1]))
+        assert apart[1] < 1 and apart[0] > 50  # levels of 255
+        costs = fr.entry_costs(face)
+        assert np.argmin(costs) == 1 and np.isfinite(costs).all()
+        np.testing.assert_array_equal(fr.composite(face), fr.composite(face, 1))  # what is pasted
+        assert np.abs(fr.composite(face, 0).astype(int) - fr.composite(face, 1)).max() > 50
+        monkeypatch.setattr(render_module, "CANDIDATES", 1)
+        costs = fr.entry_costs(face)  # equal shapes: the first is the nearest, the other is not compared
+        assert np.isfinite(costs[0]) and np.isinf(costs[1])
 
 
 def test_a_render_of_the_footage_own_geometry_keeps_its_fine_detail(footage, face_model, tmp_path):

@@ -134,7 +134,6 @@ def dub(
     from nvp.schedule import target_frame_indices
     from nvp.vad import speech_activity
     from nvp.windows import num_video_frames
-    from renderer.mouths import choose_entries, sequence_shapes
     from renderer.render import FrameRenderer, render_frames
 
     t_start = time.perf_counter()
@@ -168,10 +167,7 @@ def dub(
             out, seq.fps, seq.width, seq.height, audio=original, audio_rate=rate, metadata=tags
         ) as vw,
     ):
-        mouths = None
-        if fr.mouths is not None:  # the person's own teeth, chosen without flicker
-            mouths = choose_entries(fr.mouth_costs(sequence_shapes(model, seq, expression), order))
         frames = frames_at(bundle.path("target"), order, seq.fps)
-        for _, made in render_frames(fr, frames, order, {"dub": spoken}, progress, "dub", mouths=mouths):
+        for _, made in render_frames(fr, frames, order, {"dub": spoken}, progress, "dub"):
             vw.write(made["dub"])
     return DubResult(out, n_out, seq.fps, duration, time.perf_counter() - t_start, order, expression)

@@ -143,7 +143,7 @@ def live(
     from nvp.provenance import synthetic_mark
     from nvp.stream import LOOKAHEAD_S, ExpressionStream
     from nvp.threads import ThreadGovernor
-    from renderer.mouths import next_entry, sequence_shapes
+    from renderer.mouths import EntryChooser
     from renderer.render import FrameRenderer
 
     if output is None and raw_out is None:
@@ -186,10 +186,10 @@ def live(
         else _NoWriter() as vw,
     ):
         governor = ThreadGovernor() if str(device) == "cpu" else None
-        entry = None  # the mouth bank entry in use
+        teeth = EntryChooser()  # the person's own teeth without flicker; the future is unknown
 
         def emit(expressions: np.ndarray) -> None:
-            nonlocal dropped, last, next_status, entry
+            nonlocal dropped, last, next_status
             for e in expressions:
                 if governor is not None:
                     governor.update()
@@ -200,11 +200,9 @@ def live(
                     dropped += 1
                 else:
                     tracked = fr.tracked(k)
-                    if fr.mouths is not None:  # the person's own teeth, without flicker
-                        shape = sequence_shapes(model, seq, e[None])
-                        entry = next_entry(entry, fr.mouth_costs(shape, np.array([k]))[0])
-                    spoken = dubbed_vertices(model, seq, k, e, weights, tracked)
-                    last = fr.render(frame, k, spoken, tracked, mouth=entry)
+                    face = fr.prepare(frame, k, dubbed_vertices(model, seq, k, e, weights, tracked), tracked)
+                    entry = teeth.push(fr.entry_costs(face))[0] if fr.mouths is not None else None
+                    last = fr.composite(face, entry)
                 vw.write(last)
                 if raw_out is not None:
                     raw_out.write(last.tobytes())
