@@ -12,7 +12,7 @@ whole mouth; here only the interior, inside the rendered lips). Footage cut from
 drifts, holds mouths of other colours: the bank records the footage's light (the colour of the skin around the
 lips), an entry shot in other light than the footage frame behind the output frame costs as much as a far
 shape (:func:`light_costs`), and the pasted interior takes the rendered lips' colour
-(:meth:`renderer.render.FrameRenderer._colour_gain`).
+(:meth:`renderer.render.FrameRenderer._colour_gains`).
 
 Pure functions for choosing frames and entries (:class:`EntryChooser`: a stream's entries without flicker);
 :func:`build_mouth_bank` decodes the footage.
@@ -133,14 +133,22 @@ class MouthBank:
         return np.linalg.norm(shapes[:, None] - self.shapes[None], axis=-1).mean(-1)
 
     def positions(
-        self, entry: int, triangle_id: torch.Tensor, barycentric: torch.Tensor, triangles: torch.Tensor
+        self,
+        entry: int | np.ndarray,
+        triangle_id: torch.Tensor,
+        barycentric: torch.Tensor,
+        triangles: torch.Tensor,
     ) -> torch.Tensor:
         """``(S, S, 2)`` patch pixel of ``entry`` at each pixel of a rendered crop (its fragments
         ``triangle_id`` ``(S, S)``, ``barycentric`` ``(S, S, 3)``): the same surface point in the entry's
-        frame."""
+        frame; ``(K, S, S, 2)`` for ``K`` entries (an array)."""
         from renderer.warp import surface_points
 
-        return surface_points(triangle_id, barycentric, triangles, torch.from_numpy(self.pixels[entry]))
+        if np.ndim(entry) == 0:
+            return surface_points(triangle_id, barycentric, triangles, torch.from_numpy(self.pixels[entry]))
+        pixels = torch.from_numpy(self.pixels[entry]).permute(1, 0, 2)  # (V, K, 2)
+        moved = surface_points(triangle_id, barycentric, triangles, pixels.reshape(len(pixels), -1))
+        return moved.reshape(*moved.shape[:-1], len(entry), 2).movedim(-2, 0)
 
 
 def bank_frames(

@@ -55,11 +55,11 @@ out a dotted line there and with it 0.01-0.04 of these sharpness ratios.)"""
 
 INTERIOR_GAIN = (0.5, 2.0)
 """Range of the per-channel gain that puts a mouth-bank entry's interior into the rendered frame's colours
-(:meth:`FrameRenderer._colour_gain`)."""
+(:meth:`FrameRenderer._colour_gains`)."""
 
 INTERIOR_TOLERANCE = 0.25
 """Relative colour difference between a bank entry's lips and the rendered ones (per channel) left as it is
-(:meth:`FrameRenderer._colour_gain`): within one take the rendered lips differ from the bank's real
+(:meth:`FrameRenderer._colour_gains`): within one take the rendered lips differ from the bank's real
 ones by the networks' own error, which changes from frame to frame (gains on dfrf__cnn2 and
 edtalk__pose_source2, 5th-95th percentile, 0.92-1.10 and 0.94-1.21; following it within 15 % cost 0.08 dB
 of mouth-box PSNR on edtalk__pose_source2)."""
@@ -364,7 +364,7 @@ class FrameRenderer:
         self, face: FaceRender, window: tuple[int, int, int, int], entries: np.ndarray
     ) -> np.ndarray:
         """``(K,)`` root mean square difference (levels of 255) between each of bank ``entries``' interior
-        moved onto ``face`` (in the frame's colours, :meth:`_colour_gain`) and the networks' render, inside
+        moved onto ``face`` (in the frame's colours, :meth:`_colour_gains`) and the networks' render, inside
         the mouth interior, both blurred by a crop pixel (the networks' interior is soft)."""
         geo, render = face.geo, face.render
         r0, r1, c0, c1 = window
@@ -373,19 +373,16 @@ class FrameRenderer:
         r0p, r1p, c0p, c1p = max(r0 - pad, 0), min(r1 + pad, size), max(c0 - pad, 0), min(c1 + pad, size)
         inside = geo.mouth[0, 0, r0p:r1p, c0p:c1p] > 0.5
         tri, bary = geo.triangle_id[r0p:r1p, c0p:c1p], geo.barycentric[r0p:r1p, c0p:c1p]
-        moved = []
-        for e in entries:
-            e = int(e)
-            pos = self.mouths.positions(e, tri, bary, self._triangles)
-            # patch pixels per crop pixel: read from the level of the patch's pyramid that matches it
-            step = (pos[:, 1:] - pos[:, :-1]).norm(dim=-1)[inside[:, 1:] & inside[:, :-1]]
-            scale = float(step.median()) if len(step) else 1.0
-            level = int(np.clip(np.log2(max(scale, 1.0)), 0, len(self._pyramid)))
-            patch = self._patches[e].float() if level == 0 else self._pyramid[level - 1][e]
-            gain = self._colour_gain(e, geo, render)
-            moved.append(sample_pixels(patch, pos / 2**level) * gain[:, None, None])
+        pos = self.mouths.positions(entries, tri, bary, self._triangles)  # (K, h, w, 2)
+        # patch pixels per crop pixel: read from the level of the patches' pyramid that matches it
+        step = (pos[:, :, 1:] - pos[:, :, :-1]).norm(dim=-1)[:, inside[:, 1:] & inside[:, :-1]]
+        scale = float(step.median()) if step.numel() else 1.0
+        level = int(np.clip(np.log2(max(scale, 1.0)), 0, len(self._pyramid)))
+        patches = (self._patches if level == 0 else self._pyramid[level - 1])[torch.from_numpy(entries)]
+        gains = self._colour_gains(entries, self._rendered_lips(geo, render))
+        moved = sample_pixels(patches, pos / 2**level) * gains[:, :, None, None]  # sample_pixels: as float
         blurred = gaussian_blur2d(
-            torch.cat([torch.stack(moved), render[None, :, r0p:r1p, c0p:c1p].float().cpu() * 255]),
+            torch.cat([moved, render[None, :, r0p:r1p, c0p:c1p].float().cpu() * 255]),
             (7, 7),
             (1.0, 1.0),
             "replicate",
@@ -467,28 +464,40 @@ class FrameRenderer:
         self, geo: FrameGeometry, window: tuple[int, int, int, int], mouth: int, render: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, tuple[int, int]]:
         """The ``interior`` argument of :func:`renderer.crop.paste_region`: bank entry ``mouth``'s patch
-        ``(3, P, P)`` in this frame's colours (:meth:`_colour_gain`, against ``render`` ``(3, S, S)``, the
+        ``(3, P, P)`` in this frame's colours (:meth:`_colour_gains`, against ``render`` ``(3, S, S)``, the
         rendered crop in [0, 1]), and over the crop ``window`` around the interior
         (:meth:`_interior_window`), the patch pixel at each crop pixel ``(h, w, 2)``, the interior mask
         ``(h, w)`` and the window's first row and column."""
         r0, r1, c0, c1 = window
         tri, bary = geo.triangle_id[r0:r1, c0:c1], geo.barycentric[r0:r1, c0:c1]
         pos = self.mouths.positions(mouth, tri, bary, self._triangles)
-        patch = self._patches[mouth].float() * self._colour_gain(mouth, geo, render)[:, None, None]
+        gain = self._colour_gains(np.array([mouth]), self._rendered_lips(geo, render))[0]
+        patch = self._patches[mouth].float() * gain[:, None, None]
         return patch, pos, geo.mouth[0, 0, r0:r1, c0:c1], (r0, c0)
 
-    def _colour_gain(self, mouth: int, geo: FrameGeometry, render: torch.Tensor) -> torch.Tensor:
-        """``(3,)`` per-channel gain that gives bank entry ``mouth``'s lips the rendered lips' mean colour
-        (``render`` ``(3, S, S)`` in [0, 1] over ``geo``): a bank frame shot in other light (a later take,
-        the camera's white balance or exposure drifting) would paste teeth of another colour. Only the part
-        of the gain beyond :data:`INTERIOR_TOLERANCE` is kept, within :data:`INTERIOR_GAIN`."""
+    def _rendered_lips(
+        self, geo: FrameGeometry, render: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+        """The lips of ``geo`` in the render ``render`` ``(3, S, S)`` (in [0, 1]): their pixels' triangles
+        ``(L,)`` and barycentric coordinates ``(L, 3)`` and the render's summed colour there ``(3,)``; None
+        when fewer than 8 pixels show them."""
         tri = geo.triangle_id
         lips = (tri >= 0) & self._lip_triangles[tri.clamp_min(0)]
         if int(lips.sum()) < 8:
-            return torch.ones(3)
-        pos = self.mouths.positions(mouth, tri[lips], geo.barycentric[lips], self._triangles)
-        bank = sample_pixels(self._patches[mouth], pos).sum(-1)
+            return None
         rendered = render[:, lips.to(render.device)].float().sum(-1).cpu()  # only the lips leave the device
+        return tri[lips], geo.barycentric[lips], rendered
+
+    def _colour_gains(self, entries: np.ndarray, lips: tuple[torch.Tensor, ...] | None) -> torch.Tensor:
+        """``(K, 3)`` per-channel gains that give bank ``entries``' lips the rendered ``lips``' mean colour
+        (:meth:`_rendered_lips`): a bank frame shot in other light (a later take, the camera's white
+        balance or exposure drifting) would paste teeth of another colour. Only the part of the gain beyond
+        :data:`INTERIOR_TOLERANCE` is kept, within :data:`INTERIOR_GAIN`."""
+        if lips is None:
+            return torch.ones(len(entries), 3)
+        tri, bary, rendered = lips
+        pos = self.mouths.positions(entries, tri, bary, self._triangles)  # (K, L, 2)
+        bank = sample_pixels(self._patches[torch.from_numpy(entries)], pos).sum(-1)
         gain = (rendered * 255 / bank.clamp_min(1.0)).clamp(*INTERIOR_GAIN)
         return gain / gain.clamp(1 / (1 + INTERIOR_TOLERANCE), 1 + INTERIOR_TOLERANCE)
 

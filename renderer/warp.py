@@ -80,15 +80,19 @@ def source_positions(
 
 def sample_pixels(image: torch.Tensor, positions: torch.Tensor, mode: str = "bilinear") -> torch.Tensor:
     """Samples ``(C, ...)`` of ``image`` ``(C, H, W)`` at pixel positions ``(..., 2)`` (x, y with pixel
-    centres at +0.5; the border is replicated). ``mode="bicubic"`` for detail that must stay sharp:
-    bilinear reads between pixels average away fine texture (on real footage at random sub-pixel shifts
-    the energy of detail finer than a 5×5 blur keeps 0.63-0.95 of itself, mean 0.76; bicubic 0.94-1.00,
-    mean 0.97, like Lanczos-3's 0.98, at a tenth of its cost)."""
-    c, h, w = image.shape
-    flat = positions.reshape(1, -1, 1, 2)
+    centres at +0.5; the border is replicated), or ``(B, C, ...)`` of a batch ``(B, C, H, W)`` at ``(B, ...,
+    2)``. ``mode="bicubic"`` for detail that must stay sharp: bilinear reads between pixels average away fine
+    texture (on real footage at random sub-pixel shifts the energy of detail finer than a 5×5 blur keeps
+    0.63-0.95 of itself, mean 0.76; bicubic 0.94-1.00, mean 0.97, like Lanczos-3's 0.98, at a tenth of its
+    cost)."""
+    batch = image.dim() == 4
+    images, at = (image, positions) if batch else (image[None], positions[None])
+    b, c, h, w = images.shape
+    flat = at.reshape(b, -1, 1, 2)
     grid = torch.stack([2 * flat[..., 0] / w - 1, 2 * flat[..., 1] / h - 1], -1)
-    out = F.grid_sample(image[None].float(), grid, mode=mode, padding_mode="border", align_corners=False)
-    return out[0, :, :, 0].reshape(c, *positions.shape[:-1])
+    out = F.grid_sample(images.float(), grid, mode=mode, padding_mode="border", align_corners=False)
+    out = out[..., 0].reshape(b, c, *at.shape[1:-1])
+    return out if batch else out[0]
 
 
 def mesh_edges(triangles: np.ndarray) -> np.ndarray:
