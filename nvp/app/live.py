@@ -21,6 +21,8 @@ import sys
 import threading
 import time
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO
@@ -136,13 +138,15 @@ def live(
     """Dub the person of ``bundle_dir`` live from ``source`` (an audio/video file, or ``"-"``: raw PCM on
     stdin at ``rate`` Hz). Frames go to ``output`` (fragmented MP4 with the audio) and/or ``raw_out``
     (RGB24, ``width × height × 3`` bytes per frame). ``status(text)`` is called about once a second."""
+    import torch
+
     from nvp.app.dub import dubbed_vertices, load_person
     from nvp.artifact import check_output_file
     from nvp.bundle import PersonBundle
     from nvp.media import VideoWriter
     from nvp.provenance import synthetic_mark
     from nvp.stream import LOOKAHEAD_S, ExpressionStream
-    from nvp.threads import ThreadGovernor
+    from nvp.threads import ThreadGovernor, frame_workers
     from renderer.mouths import EntryChooser
     from renderer.render import FrameRenderer
 
@@ -184,37 +188,69 @@ def live(
         )
         if output is not None
         else _NoWriter() as vw,
+        ExitStack() as stack,  # closed first: the render threads stop before the renderer and the writer
     ):
         governor = ThreadGovernor() if str(device) == "cpu" else None
         teeth = EntryChooser()  # the person's own teeth without flicker; the future is unknown
+        # the frames of a block are rendered side by side, one PyTorch thread each, as nvp dub does
+        workers = frame_workers() if governor is not None else 1
+        idle = [fr] + [stack.enter_context(fr.twin()) for _ in range(workers - 1)]
+        pool = ThreadPoolExecutor(workers, initializer=torch.set_num_threads, initargs=(1,))
+        stack.enter_context(pool)
+        stack.callback(pool.shutdown, cancel_futures=True)
+
+        def networks(k: int, frame: np.ndarray, e: np.ndarray) -> tuple:
+            renderer = idle.pop()  # at most `workers` jobs run, so one is always free
+            try:
+                tracked = renderer.tracked(k)
+                spoken = dubbed_vertices(model, seq, k, e, weights, tracked)
+                face = renderer.prepare(frame, k, spoken, tracked)
+                return face, renderer.entry_costs(face) if renderer.mouths is not None else None
+            finally:
+                idle.append(renderer)
 
         def emit(expressions: np.ndarray) -> None:
-            nonlocal dropped, last, next_status
+            """Renders and writes the frames of one block of audio (all of them before the next block is
+            read): their networks side by side, the bank entries in order, then the pastes side by side."""
+            nonlocal dropped, last
+            started = []  # (output frame, its networks' future, or None: repeat the last frame)
             for e in expressions:
                 if governor is not None:
                     governor.update()
-                j = len(latency)
+                j = len(latency) + len(started)
                 k, frame = next(footage)
                 late = time.perf_counter() - arrival(j)
-                if last is not None and late > max_lag_s:
+                if (last is not None or started) and late > max_lag_s:
                     dropped += 1
+                    started.append((j, None))
                 else:
-                    tracked = fr.tracked(k)
-                    face = fr.prepare(frame, k, dubbed_vertices(model, seq, k, e, weights, tracked), tracked)
-                    entry = teeth.push(fr.entry_costs(face))[0] if fr.mouths is not None else None
-                    last = fr.composite(face, entry)
-                vw.write(last)
-                if raw_out is not None:
-                    raw_out.write(last.tobytes())
-                    raw_out.flush()
-                latency.append(time.perf_counter() - arrival(j))
-                now = time.perf_counter()
-                if status is not None and now >= next_status:
-                    next_status = now + 1.0
-                    status(
-                        f"{j + 1} frames, {stream.received / 16000:.1f} s of audio, latency "
-                        f"{latency[-1]:.2f} s, {dropped} dropped"
-                    )
+                    started.append((j, pool.submit(networks, k, frame, e)))
+            pasting = []
+            for j, future in started:
+                if future is not None:
+                    face, costs = future.result()
+                    entry = teeth.push(costs)[0] if costs is not None else None
+                    future = pool.submit(fr.composite, face, entry)
+                pasting.append((j, future))
+            for j, future in pasting:
+                if future is not None:
+                    last = future.result()
+                write(j, last)
+
+        def write(j: int, frame: np.ndarray) -> None:
+            nonlocal next_status
+            vw.write(frame)
+            if raw_out is not None:
+                raw_out.write(frame.tobytes())
+                raw_out.flush()
+            latency.append(time.perf_counter() - arrival(j))
+            now = time.perf_counter()
+            if status is not None and now >= next_status:
+                next_status = now + 1.0
+                status(
+                    f"{j + 1} frames, {stream.received / 16000:.1f} s of audio, latency "
+                    f"{latency[-1]:.2f} s, {dropped} dropped"
+                )
 
         reader = _Reader(blocks, pace)  # its clock starts now: the first block "arrives" BLOCK_S later
         reader.start()
