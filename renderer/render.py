@@ -8,7 +8,9 @@ from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import ExitStack
 from dataclasses import dataclass, replace
+from functools import partial
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 import torch
@@ -555,6 +557,8 @@ def network_window(paint: torch.Tensor, margin: int, multiple: int = 16) -> tupl
     return span(int(rows[0]), int(rows[-1])), span(int(cols[0]), int(cols[-1]))
 
 
+T = TypeVar("T")
+
 Geometry = Callable[[int, int, np.ndarray], np.ndarray]
 """``(j, index, tracked_cam) → (V, 3)`` camera-frame vertices to render for output frame ``j`` over footage
 frame ``index`` whose tracked vertices are ``tracked_cam``."""
@@ -614,23 +618,10 @@ def render_frames(
 
     with ExitStack() as stack:
         stack.callback(bar.close)
-        idle = [fr] + [stack.enter_context(fr.twin()) for _ in range(n - 1)]
-        if n == 1:  # in this thread (a profiler sees it; a GPU renders one frame at a time anyway)
-            pool = _InThisThread()
-        else:
-            pool = ThreadPoolExecutor(n, initializer=torch.set_num_threads, initargs=(1,))
-            stack.enter_context(pool)
-            stack.callback(pool.shutdown, cancel_futures=True)  # runs first: nothing new starts on an error
+        pool = stack.enter_context(RenderWorkers(fr, n))
 
-        def networks(j: int, k: int, frame: np.ndarray) -> dict[str, tuple]:
-            renderer = idle.pop()  # list.pop/append are atomic; at most n jobs run, so one is always free
-            try:
-                return prepare(renderer, j, k, frame)
-            finally:
-                idle.append(renderer)
-
-        def composite(faces: dict[str, tuple], entries: dict[str, int | None]) -> dict[str, np.ndarray]:
-            return {name: fr.composite(face, entries[name]) for name, (face, _) in faces.items()}
+        def composite(faces: dict[str, tuple], entries: dict[str, int | None]) -> Callable:
+            return lambda r: {name: r.composite(face, entries[name]) for name, (face, _) in faces.items()}
 
         started: deque = deque()  # (frame, networks' future), in order
         waiting: deque = deque()  # (frame, prepared faces) whose bank entries are not fixed yet
@@ -650,7 +641,7 @@ def render_frames(
             for entries in zip(*fixed.values(), strict=True):
                 frame, prepared = waiting.popleft()
                 chosen = dict(zip(variants, entries, strict=True))
-                pasting.append((frame, pool.submit(composite, prepared, chosen)))
+                pasting.append((frame, pool.submit(composite(prepared, chosen))))
 
         def done(limit: int) -> Iterator[tuple[np.ndarray, dict[str, np.ndarray]]]:
             while len(pasting) > limit:
@@ -659,7 +650,7 @@ def render_frames(
                 bar.update(1)
 
         for j, (k, frame) in enumerate(zip(indices, frames, strict=False)):
-            started.append((frame, pool.submit(networks, j, int(k), frame)))
+            started.append((frame, pool.submit(partial(prepare, j=j, k=int(k), frame=frame))))
             while len(started) > n - 1:
                 first, future = started.popleft()
                 choose((first, future.result()))
@@ -671,11 +662,39 @@ def render_frames(
         yield from done(0)
 
 
-class _InThisThread:
-    """An executor that runs each job when it is submitted, in the calling thread."""
+class RenderWorkers:
+    """``workers`` renderers of one person (``fr`` and twins, :meth:`FrameRenderer.twin`), each on its own
+    thread with one PyTorch thread (see :func:`render_frames`), or ``fr`` alone in the calling thread when
+    ``workers`` is 1 (a profiler sees it; a GPU renders one frame at a time anyway). Use as a context
+    manager: leaving it stops the threads (what has not started is cancelled) and closes the twins."""
 
-    @staticmethod
-    def submit(fn: Callable, *args) -> Future:
+    def __init__(self, fr: FrameRenderer, workers: int) -> None:
+        self._stack = ExitStack()
+        self._idle = [fr] + [self._stack.enter_context(fr.twin()) for _ in range(workers - 1)]
+        self._pool = None
+        if workers > 1:
+            self._pool = ThreadPoolExecutor(workers, initializer=torch.set_num_threads, initargs=(1,))
+            self._stack.enter_context(self._pool)
+            self._stack.callback(self._pool.shutdown, cancel_futures=True)  # first: nothing new starts
+
+    def __enter__(self) -> RenderWorkers:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stack.close()
+
+    def submit(self, job: Callable[[FrameRenderer], T]) -> Future[T]:
+        """``job(renderer)`` on a free renderer; its future."""
+
+        def run() -> T:
+            renderer = self._idle.pop()  # list.pop/append are atomic; at most `workers` jobs run at once
+            try:
+                return job(renderer)
+            finally:
+                self._idle.append(renderer)
+
+        if self._pool is not None:
+            return self._pool.submit(run)
         done: Future = Future()
-        done.set_result(fn(*args))
+        done.set_result(run())
         return done

@@ -21,9 +21,8 @@ import sys
 import threading
 import time
 from collections.abc import Iterator
-from concurrent.futures import ThreadPoolExecutor
-from contextlib import ExitStack
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import BinaryIO
 
@@ -138,8 +137,6 @@ def live(
     """Dub the person of ``bundle_dir`` live from ``source`` (an audio/video file, or ``"-"``: raw PCM on
     stdin at ``rate`` Hz). Frames go to ``output`` (fragmented MP4 with the audio) and/or ``raw_out``
     (RGB24, ``width × height × 3`` bytes per frame). ``status(text)`` is called about once a second."""
-    import torch
-
     from nvp.app.dub import dubbed_vertices, load_person
     from nvp.artifact import check_output_file
     from nvp.bundle import PersonBundle
@@ -148,7 +145,7 @@ def live(
     from nvp.stream import LOOKAHEAD_S, ExpressionStream
     from nvp.threads import ThreadGovernor, frame_workers
     from renderer.mouths import EntryChooser
-    from renderer.render import FrameRenderer
+    from renderer.render import FrameRenderer, RenderWorkers
 
     if output is None and raw_out is None:
         raise NvpError("give an output: -o live.mp4 and/or --raw (frames on stdout)")
@@ -188,26 +185,17 @@ def live(
         )
         if output is not None
         else _NoWriter() as vw,
-        ExitStack() as stack,  # closed first: the render threads stop before the renderer and the writer
+        # the frames of a block are rendered side by side, one PyTorch thread each, as nvp dub does; closed
+        # first, so the render threads stop before the renderer and the writer close
+        RenderWorkers(fr, frame_workers() if str(device) == "cpu" else 1) as pool,
     ):
         governor = ThreadGovernor() if str(device) == "cpu" else None
         teeth = EntryChooser()  # the person's own teeth without flicker; the future is unknown
-        # the frames of a block are rendered side by side, one PyTorch thread each, as nvp dub does
-        workers = frame_workers() if governor is not None else 1
-        idle = [fr] + [stack.enter_context(fr.twin()) for _ in range(workers - 1)]
-        pool = ThreadPoolExecutor(workers, initializer=torch.set_num_threads, initargs=(1,))
-        stack.enter_context(pool)
-        stack.callback(pool.shutdown, cancel_futures=True)
 
-        def networks(k: int, frame: np.ndarray, e: np.ndarray) -> tuple:
-            renderer = idle.pop()  # at most `workers` jobs run, so one is always free
-            try:
-                tracked = renderer.tracked(k)
-                spoken = dubbed_vertices(model, seq, k, e, weights, tracked)
-                face = renderer.prepare(frame, k, spoken, tracked)
-                return face, renderer.entry_costs(face) if renderer.mouths is not None else None
-            finally:
-                idle.append(renderer)
+        def networks(renderer: FrameRenderer, k: int, frame: np.ndarray, e: np.ndarray) -> tuple:
+            tracked = renderer.tracked(k)
+            face = renderer.prepare(frame, k, dubbed_vertices(model, seq, k, e, weights, tracked), tracked)
+            return face, renderer.entry_costs(face) if renderer.mouths is not None else None
 
         def emit(expressions: np.ndarray) -> None:
             """Renders and writes the frames of one block of audio (all of them before the next block is
@@ -224,13 +212,13 @@ def live(
                     dropped += 1
                     started.append((j, None))
                 else:
-                    started.append((j, pool.submit(networks, k, frame, e)))
+                    started.append((j, pool.submit(partial(networks, k=k, frame=frame, e=e))))
             pasting = []
             for j, future in started:
                 if future is not None:
                     face, costs = future.result()
                     entry = teeth.push(costs)[0] if costs is not None else None
-                    future = pool.submit(fr.composite, face, entry)
+                    future = pool.submit(partial(FrameRenderer.composite, face=face, mouth=entry))
                 pasting.append((j, future))
             for j, future in pasting:
                 if future is not None:
