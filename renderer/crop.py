@@ -195,6 +195,17 @@ def paste_region(
     cx, cy, side = (float(v) for v in box)
     x0, x1 = max(int(np.floor(cx - side / 2)), 0), min(int(np.ceil(cx + side / 2)), w)
     y0, y1 = max(int(np.floor(cy - side / 2)), 0), min(int(np.ceil(cy + side / 2)), h)
+    # only the frame pixels the weight reaches (where it is 0 the frame stays as it is): a frame pixel
+    # centre x reads crop columns floor(u) and floor(u) + 1 at u = (x + 0.5 - left) / step - 0.5
+    on = weight.expand(1, 1, s, s)[0, 0] > 0
+    rows_on, cols_on = torch.nonzero(on.any(1))[:, 0], torch.nonzero(on.any(0))[:, 0]
+    if len(rows_on) == 0:
+        return None
+    step, left, top = side / s, cx - side / 2, cy - side / 2
+    x0 = max(x0, int(np.floor(left + (int(cols_on[0]) - 0.5) * step - 0.5)))
+    x1 = min(x1, int(np.ceil(left + (int(cols_on[-1]) + 1.5) * step - 0.5)) + 1)
+    y0 = max(y0, int(np.floor(top + (int(rows_on[0]) - 0.5) * step - 0.5)))
+    y1 = min(y1, int(np.ceil(top + (int(rows_on[-1]) + 1.5) * step - 0.5)) + 1)
     if x1 <= x0 or y1 <= y0:
         return None
     # frame pixel centres of the region, in normalised crop coordinates

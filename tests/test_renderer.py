@@ -88,6 +88,35 @@ def test_paste_region_is_the_frame_paste_under_the_box():
     assert torch.equal(paste(frame, crop, np.array([500.0, 500.0, 64.0]), feather(64)), frame)
 
 
+def test_paste_region_covers_exactly_the_pixels_its_weight_reaches():
+    """The paste works only on the frame pixels the weight reaches (a lower face is a fraction of its
+    box): the same pixels as blending the whole box, none left out."""
+    import torch.nn.functional as F
+
+    from renderer.crop import paste_region
+
+    frame = torch.rand(3, 200, 240) * 255
+    crop = torch.rand(3, 48, 48) * 255
+    weight = torch.zeros(1, 1, 48, 48)
+    weight[..., 30:41, 12:29] = torch.rand(11, 17)
+    for box in (np.array([120.3, 95.7, 150.0]), np.array([20.0, 140.0, 97.0])):  # inside / over the edge
+        pixels, alpha, (rows, cols) = paste_region(frame, crop, box, weight)
+        assert rows.stop - rows.start < 80 and cols.stop - cols.start < 80  # not the whole box
+        # the whole frame blended the plain way: crop and weight sampled at every pixel centre
+        xs = ((torch.arange(240, dtype=torch.float32) + 0.5 - box[0]) / box[2]) * 2
+        ys = ((torch.arange(200, dtype=torch.float32) + 0.5 - box[1]) / box[2]) * 2
+        grid = torch.stack(torch.meshgrid(xs, ys, indexing="xy"), -1)[None]
+        sampled = F.grid_sample(torch.cat([crop[None], weight], 1), grid, align_corners=False)[0]
+        a = sampled[3:]
+        whole = a * sampled[:3] + (1 - a) * frame
+        outside = torch.ones(200, 240, dtype=torch.bool)
+        outside[rows, cols] = False
+        assert not a[0][outside].any()  # every pixel the weight reaches was pasted
+        torch.testing.assert_close(pixels, whole[:, rows, cols])
+        torch.testing.assert_close(alpha, a[0, rows, cols])
+    assert paste_region(frame, crop, np.array([120.0, 95.0, 150.0]), torch.zeros(1, 1, 48, 48)) is None
+
+
 def test_paste_keeps_the_footage_detail_outside_the_replaced_region():
     torch.manual_seed(0)
     frame = torch.rand(3, 200, 200) * 255  # fine detail that a 48 px crop of a 160 px box cannot hold
