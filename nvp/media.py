@@ -407,28 +407,47 @@ def iter_frames(
     return _iter_grid(probe, rate, start_frame, end)
 
 
+FORWARD_GAP_S = 4.0
+""":func:`frames_at` decodes on to a later chunk's first frame when it lies at most this far ahead (seconds)
+of its decoder, instead of seeking: a seek decodes again from the keyframe before the frame (up to a GOP back,
+10 s at x264's default), so a dub reading its footage forward decoded most frames several times (a forward
+read of a 1080p footage with a 150-frame GOP: 8.8 → 3.6 ms per frame; 512², 250-frame GOP: 3.4 → 0.6)."""
+
+
 def frames_at(
     path: str | os.PathLike[str], indices: np.ndarray, fps: float, chunk: int = 48
 ) -> Iterator[np.ndarray]:
     """Yield the frames of ``path`` (on the ``fps`` grid) at ``indices`` in that order (any order, e.g. a
     ping-pong schedule, or a few frames spread over a long video), decoding the source frames spanned by
     ``chunk`` consecutive indices at a time and keeping only the ones asked for (memory: at most ``chunk``
-    frames).
+    frames). One decoder runs on from chunk to chunk while they move forward (see :data:`FORWARD_GAP_S`);
+    it seeks when a chunk starts behind it or far ahead.
 
     Raises:
         MediaError: the file ends before an index.
     """
-    for c0 in range(0, len(indices), chunk):
-        part = [int(i) for i in indices[c0 : c0 + chunk]]
-        lo, hi = min(part), max(part)
-        wanted, kept, n = set(part), {}, 0
-        for n, frame in enumerate(iter_frames(path, fps=fps, start_frame=lo, max_frames=hi - lo + 1), 1):
-            if lo + n - 1 in wanted:
-                kept[lo + n - 1] = frame
-        if n < hi - lo + 1:
-            raise MediaError(f"{path}: expected frames {lo}..{hi}, the file ended after {lo + n}")
-        for i in part:
-            yield kept[i]
+    decoder, pos = None, 0  # the running decode and the grid index of the frame it yields next
+    try:
+        for c0 in range(0, len(indices), chunk):
+            part = [int(i) for i in indices[c0 : c0 + chunk]]
+            lo, hi = min(part), max(part)
+            if decoder is None or not pos <= lo <= pos + FORWARD_GAP_S * fps:
+                if decoder is not None:
+                    decoder.close()
+                decoder, pos = iter_frames(path, fps=fps, start_frame=lo), lo
+            wanted, kept = set(part), {}
+            while pos <= hi:
+                frame = next(decoder, None)
+                if frame is None:
+                    raise MediaError(f"{path}: expected frames {lo}..{hi}, the file ended after {pos}")
+                if pos in wanted:
+                    kept[pos] = frame
+                pos += 1
+            for i in part:
+                yield kept[i]
+    finally:
+        if decoder is not None:
+            decoder.close()
 
 
 def _iter_grid(probe: _Probe, rate: Fraction, start: int, end: int) -> Iterator[np.ndarray]:

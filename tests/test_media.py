@@ -159,6 +159,30 @@ def test_frames_at_any_order_keeps_only_the_frames_asked_for(clip: Path, monkeyp
         list(frames_at(clip, np.array([3, 12]), 25.0))
 
 
+def test_frames_at_decodes_on_while_the_chunks_move_forward(clip: Path, monkeypatch) -> None:
+    """A dub reads its footage forward (and back, ping-pong): one decoder runs on from chunk to chunk
+    instead of seeking again (which decodes from the keyframe before each chunk)."""
+    from nvp import media
+
+    every = list(iter_frames(clip))
+    opened, real = [], media.iter_frames
+
+    def counted(*args, **kwargs):
+        opened.append(kwargs.get("start_frame", 0))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(media, "iter_frames", counted)
+    forward = np.arange(10)
+    for i, f in zip(forward, frames_at(clip, forward, 25.0, chunk=3), strict=True):
+        np.testing.assert_array_equal(f, every[i])
+    assert opened == [0]
+    opened.clear()
+    ping_pong = np.concatenate([np.arange(10), np.arange(9, -1, -1)])
+    for i, f in zip(ping_pong, frames_at(clip, ping_pong, 25.0, chunk=4), strict=True):
+        np.testing.assert_array_equal(f, every[i])
+    assert opened == [0, 4, 0]  # chunks 0-3, 4-7, 8-9 in one pass; a seek for each backward chunk
+
+
 def test_seek_with_short_gop_matches_full_decode(tmp_path: Path) -> None:
     path = tmp_path / "gop.mp4"
     write_pyav(path, [(10 + 12 * k, 40 * k) for k in range(20)], gop=4)
