@@ -183,6 +183,19 @@ def test_frames_at_decodes_on_while_the_chunks_move_forward(clip: Path, monkeypa
     assert opened == [0, 4, 0]  # chunks 0-3, 4-7, 8-9 in one pass; a seek for each backward chunk
 
 
+def test_live_footage_plays_forward_and_back_forever(clip: Path) -> None:
+    from itertools import islice
+
+    from nvp.app.live import _target_frames
+    from nvp.schedule import target_frame_indices
+
+    every = list(iter_frames(clip))
+    got = list(islice(_target_frames(clip, 10, 25.0), 45))  # two and a half passes of 18 frames
+    assert [i for i, _ in got] == target_frame_indices(45, 10).tolist()
+    for i, frame in got:
+        np.testing.assert_array_equal(frame, every[i])
+
+
 def test_seek_with_short_gop_matches_full_decode(tmp_path: Path) -> None:
     path = tmp_path / "gop.mp4"
     write_pyav(path, [(10 + 12 * k, 40 * k) for k in range(20)], gop=4)

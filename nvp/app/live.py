@@ -107,18 +107,17 @@ def pcm_blocks(stream: BinaryIO, rate: int, block_s: float = BLOCK_S) -> Iterato
         yield x
 
 
-def _target_frames(
-    path: Path, num_target: int, fps: float, chunk: int = 48
-) -> Iterator[tuple[int, np.ndarray]]:
-    """The footage's frames in ``nvp dub``'s forward-backward order, forever: ``(index, frame)``."""
+def _target_frames(path: Path, num_target: int, fps: float) -> Iterator[tuple[int, np.ndarray]]:
+    """The footage's frames in ``nvp dub``'s forward-backward order, forever: ``(index, frame)``, read one
+    forward-and-back pass at a time (one decoder runs through the forward half, see
+    :func:`nvp.media.frames_at`; the frames held are its chunk's at most)."""
     from nvp.media import frames_at
     from nvp.schedule import target_frame_indices
 
-    start = 0
+    period = max(1, 2 * (num_target - 1))
     while True:
-        order = target_frame_indices(chunk, num_target, start)
+        order = target_frame_indices(period, num_target)
         yield from zip(order.tolist(), frames_at(path, order, fps), strict=True)
-        start += chunk
 
 
 def live(
