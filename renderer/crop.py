@@ -181,10 +181,11 @@ def paste_region(
     paint: torch.Tensor | None = None,
     interior: tuple[torch.Tensor, torch.Tensor, torch.Tensor, tuple[int, int]] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, tuple[slice, slice]] | None:
-    """:func:`paste` for the frame pixels under the box only: the blended pixels ``(C, h, w)``, their blend
-    weight ``(h, w)`` and the ``(rows, columns)`` slices of the frame they replace; None when the box lies
-    outside the frame. The rest of the frame is unchanged, so a caller holding the frame as uint8 need not
-    convert all of it.
+    """:func:`paste` for the frame pixels the weight reaches only (the rows and columns under the box where
+    it is not 0; a lower face is a third of its box): the blended pixels ``(C, h, w)``, their blend weight
+    ``(h, w)`` and the ``(rows, columns)`` slices of the frame they replace; None when the box lies outside
+    the frame or the weight is 0. The rest of the frame is unchanged, so a caller holding the frame as uint8
+    need not convert all of it.
 
     ``interior = (patch, positions, mask, (row, col))``: where ``mask`` ``(h', w')`` (the crop's mouth
     interior, a window of the crop from ``row``, ``col``) the crop is replaced by ``patch`` ``(C, P, P)``

@@ -109,14 +109,15 @@ def pcm_blocks(stream: BinaryIO, rate: int, block_s: float = BLOCK_S) -> Iterato
 
 def _target_frames(path: Path, num_target: int, fps: float) -> Iterator[tuple[int, np.ndarray]]:
     """The footage's frames in ``nvp dub``'s forward-backward order, forever: ``(index, frame)``, read one
-    forward-and-back pass at a time (one decoder runs through the forward half, see
+    forward-and-back pass (at least 48 frames) at a time (one decoder runs through the forward half, see
     :func:`nvp.media.frames_at`; the frames held are its chunk's at most)."""
     from nvp.media import frames_at
     from nvp.schedule import target_frame_indices
 
     period = max(1, 2 * (num_target - 1))
+    passes = -(-48 // period)  # a very short footage: several passes per read
     while True:
-        order = target_frame_indices(period, num_target)
+        order = target_frame_indices(period * passes, num_target)
         yield from zip(order.tolist(), frames_at(path, order, fps), strict=True)
 
 
