@@ -21,6 +21,7 @@ import errno
 import hashlib
 import json
 import os
+import tempfile
 import zipfile
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -94,7 +95,7 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
 
 def check_output_file(path: str | os.PathLike[str], inputs: tuple = ()) -> Path:
     """Check, before any work, that ``path`` can be written as an output file: it is none of the
-    ``inputs``, not a folder, and its folder (or the nearest existing parent) is writable."""
+    ``inputs``, not a folder, and a file can be created in its folder (or the nearest existing parent)."""
     path = Path(path)
     for i in inputs:
         if Path(i).exists() and path.exists() and path.resolve() == Path(i).resolve():
@@ -106,6 +107,11 @@ def check_output_file(path: str | os.PathLike[str], inputs: tuple = ()) -> Path:
         parent = parent.parent
     if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
         raise NvpError(f"cannot write {path}: the folder {parent} is not writable")
+    try:  # permissions can say yes where no file can be made (/proc, a full disk, some network mounts)
+        with tempfile.TemporaryFile(dir=parent):
+            pass
+    except OSError as e:
+        raise NvpError(f"cannot write {path}: no file can be created in {parent} ({e.strerror})") from None
     return path
 
 

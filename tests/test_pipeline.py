@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -231,9 +232,12 @@ def test_dub_checks_its_output_before_any_work(bundle, tmp_path, monkeypatch):
     folder = tmp_path / "already_a_folder"
     folder.mkdir()
     assert_one_line_error(nvp("dub", audio, "--person", bundle, "-o", folder), "is a folder")
-    # a read-only folder (simulated: root may write anywhere): one line, nothing rendered
-    monkeypatch.setattr(artifact.os, "access", lambda *a: False)
+    # a folder where no file can be made: one line, nothing rendered
     monkeypatch.setattr("nvp.app.dub.PersonBundle.load", lambda *a, **k: pytest.fail("work before the check"))
+    if os.path.isdir("/proc/self"):  # permissions say yes, yet no file can be made there
+        assert main(["-q", "dub", str(audio), "--person", str(bundle), "-o", "/proc/nvp_dub.mp4"]) == 2
+    # a read-only folder (simulated: root may write anywhere)
+    monkeypatch.setattr(artifact.os, "access", lambda *a: False)
     assert main(["-q", "dub", str(audio), "--person", str(bundle), "-o", str(tmp_path / "ro" / "x.mp4")]) == 2
 
 
