@@ -106,6 +106,9 @@ class FaceRender:
         geo: the rasterized geometry; crop: ``(3, S, S)`` the footage crop in [0, 1].
         render: ``(3, S, S)`` the networks' crop in [0, 1] (the crop itself outside their window).
         paint: ``(1, 1, S, S)`` the painted lower face; moved: the detail moved onto it, if any.
+        interior: with a mouth bank, the crop window around the mouth interior the geometry shows
+            (:meth:`FrameRenderer._interior_window`; None when it shows none); lips: the rendered lips
+            there (:meth:`FrameRenderer._rendered_lips`), which the bank entries' colours follow.
     """
 
     frame: np.ndarray
@@ -119,6 +122,8 @@ class FaceRender:
     render: torch.Tensor | None = None
     paint: torch.Tensor | None = None
     moved: MovedDetail | None = None
+    interior: tuple[int, int, int, int] | None = None
+    lips: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
 
 
 class FrameRenderer:
@@ -292,6 +297,9 @@ class FrameRenderer:
             moved = self._band(moved, inside, (rows, cols), geo, src_geo, vertices_cam, index, source)
         final = crop.to(inside).clone()  # outside the window the crop itself (its paste weight is 0)
         final[..., rows, cols] = inside
+        # where a bank entry's interior may go, and the lips its colours follow: found once per frame
+        window = self._interior_window(geo) if self.mouths is not None else None
+        lips = self._rendered_lips(geo, final[0]) if window is not None else None
         return FaceRender(
             frame,
             index,
@@ -304,6 +312,8 @@ class FrameRenderer:
             final[0],
             paint,
             moved if self.detail else None,
+            window,
+            lips,
         )
 
     @torch.inference_mode()
@@ -316,11 +326,10 @@ class FrameRenderer:
         out, painted = frame.copy(), np.zeros(frame.shape[:2], np.float32)
         if face.geo is not None:
             interior = None
-            window = self._interior_window(face.geo) if self.mouths is not None else None
-            if window is not None:
+            if face.interior is not None:
                 if mouth is None:
                     mouth = int(np.argmin(self.entry_costs(face)))
-                interior = self._interior(face.geo, window, mouth, face.render)
+                interior = self._interior(face, mouth)
             # only the lower face and its surroundings are pasted, the footage keeping its full-resolution
             # detail where the paste weight is below 1 (1 - paint)
             pasted = paste_region(
@@ -354,12 +363,12 @@ class FrameRenderer:
         pose = self.seq.rotation[face.index], self.seq.translation[face.index]
         shape = unposed(face.vertices_cam[self._inner], *pose)[None].astype(np.float32)
         costs = self.mouth_costs(shape, np.array([face.index]))[0]
-        window = None if face.geo is None else self._interior_window(face.geo)
-        if window is None:
+        if face.interior is None:
             return costs
         candidates = np.argsort(costs, kind="stable")[:CANDIDATES]
         out = np.full_like(costs, np.inf)
-        out[candidates] = costs[candidates] + AGREEMENT_CM * self._disagreement(face, window, candidates)
+        apart = self._disagreement(face, face.interior, candidates)
+        out[candidates] = costs[candidates] + AGREEMENT_CM * apart
         return out
 
     def _disagreement(
@@ -385,7 +394,7 @@ class FrameRenderer:
         scale = float(step.median()) if step.numel() else 1.0
         level = int(np.clip(np.log2(max(scale, 1.0)), 0, len(self._pyramid)))
         patches = (self._patches if level == 0 else self._pyramid[level - 1])[torch.from_numpy(entries)]
-        gains = self._colour_gains(entries, self._rendered_lips(geo, render))
+        gains = self._colour_gains(entries, face.lips)
         moved = sample_pixels(patches, pos / 2**level) * gains[:, :, None, None]  # sample_pixels: as float
         blurred = gaussian_blur2d(
             torch.cat([moved, render[None, :, r0p:r1p, c0p:c1p].float().cpu() * 255]),
@@ -467,17 +476,17 @@ class FrameRenderer:
         return r0, r1, c0, c1
 
     def _interior(
-        self, geo: FrameGeometry, window: tuple[int, int, int, int], mouth: int, render: torch.Tensor
+        self, face: FaceRender, mouth: int
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, tuple[int, int]]:
-        """The ``interior`` argument of :func:`renderer.crop.paste_region`: bank entry ``mouth``'s patch
-        ``(3, P, P)`` in this frame's colours (:meth:`_colour_gains`, against ``render`` ``(3, S, S)``, the
-        rendered crop in [0, 1]), and over the crop ``window`` around the interior
-        (:meth:`_interior_window`), the patch pixel at each crop pixel ``(h, w, 2)``, the interior mask
-        ``(h, w)`` and the window's first row and column."""
-        r0, r1, c0, c1 = window
+        """The ``interior`` argument of :func:`renderer.crop.paste_region` for a ``face`` that shows its
+        mouth interior: bank entry ``mouth``'s patch ``(3, P, P)`` in this frame's colours
+        (:meth:`_colour_gains` against the rendered lips), and over the crop window around the interior
+        (``face.interior``), the patch pixel at each crop pixel ``(h, w, 2)``, the interior mask ``(h, w)``
+        and the window's first row and column."""
+        geo, (r0, r1, c0, c1) = face.geo, face.interior
         tri, bary = geo.triangle_id[r0:r1, c0:c1], geo.barycentric[r0:r1, c0:c1]
         pos = self.mouths.positions(mouth, tri, bary, self._triangles)
-        gain = self._colour_gains(np.array([mouth]), self._rendered_lips(geo, render))[0]
+        gain = self._colour_gains(np.array([mouth]), face.lips)[0]
         patch = self._patches[mouth].float() * gain[:, None, None]
         return patch, pos, geo.mouth[0, 0, r0:r1, c0:c1], (r0, c0)
 
