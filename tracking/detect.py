@@ -12,6 +12,7 @@ from tqdm import tqdm
 from nvp.errors import NoFaceError
 from nvp.media import iter_frames, probe_video
 from tracking.landmarks import NUM_BLENDSHAPES, NUM_LANDMARKS, LandmarkDetector
+from tracking.lipflow import mouth_flow
 
 log = logging.getLogger(__name__)
 
@@ -26,6 +27,10 @@ class Detections:
         points: ``(T, 478, 3)`` float32 landmarks (x, y pixels; z pixels, relative); NaN where not found.
         blendshapes: ``(T, 52)`` float32 ARKit scores; NaN where not found.
         found: ``(T,)`` bool, whether a face was detected in the frame.
+        lip_points: ``(N,)`` the landmarks (lips) whose motion between frames was measured, or None.
+        lip_flow: ``(T, 2, N, 2)`` float32 optical flow at those landmarks of frame ``t`` (x, y pixels):
+            ``[:, 0]`` to frame ``t + 1``, ``[:, 1]`` to frame ``t - 1``
+            (:func:`tracking.lipflow.mouth_flow`); NaN where either frame has no face. None when not measured.
     """
 
     fps: float
@@ -34,8 +39,11 @@ class Detections:
     points: np.ndarray
     blendshapes: np.ndarray
     found: np.ndarray
+    lip_points: np.ndarray | None = None
+    lip_flow: np.ndarray | None = None
 
     def save(self, path: Path) -> None:
+        flow = {} if self.lip_flow is None else {"lip_points": self.lip_points, "lip_flow": self.lip_flow}
         np.savez_compressed(
             path,
             fps=self.fps,
@@ -44,6 +52,7 @@ class Detections:
             points=self.points,
             blendshapes=self.blendshapes,
             found=self.found,
+            **flow,
         )
 
     @classmethod
@@ -56,6 +65,8 @@ class Detections:
                 points=z["points"],
                 blendshapes=z["blendshapes"],
                 found=z["found"],
+                lip_points=z["lip_points"] if "lip_points" in z else None,
+                lip_flow=z["lip_flow"] if "lip_flow" in z else None,
             )
 
 
@@ -65,8 +76,10 @@ def detect_video(
     stride: int = 1,
     max_frames: int | None = None,
     progress: bool = True,
+    lips: np.ndarray | None = None,
 ) -> Detections:
-    """Detect landmarks on every ``stride``-th frame of a video.
+    """Detect landmarks on every ``stride``-th frame of a video; with ``lips`` (landmark indices) also the
+    optical flow at them between neighbouring frames (``Detections.lip_flow``).
 
     Raises:
         MediaError: unreadable file or no video stream.
@@ -74,7 +87,8 @@ def detect_video(
     """
     info = probe_video(path)
     total = info.num_frames if max_frames is None else min(info.num_frames, max_frames)
-    pts, bss, found = [], [], []
+    pts, bss, found, flows = [], [], [], []
+    previous = None  # grey frame and lip points of the last frame, when it had a face
     with LandmarkDetector() as det:
         frames = iter_frames(path, max_frames=max_frames)
         bar = tqdm(total=total, desc=f"detect {Path(path).name}", unit="f", disable=not progress, leave=False)
@@ -83,14 +97,19 @@ def detect_video(
             if i % stride:
                 continue
             r = det.detect(rgb, i / info.fps)
+            if lips is not None:
+                flows.append(np.full((2, len(lips), 2), np.nan, np.float32))
             if r is None:
                 pts.append(np.full((NUM_LANDMARKS, 3), np.nan, np.float32))
                 bss.append(np.full(NUM_BLENDSHAPES, np.nan, np.float32))
                 found.append(False)
+                previous = None
             else:
                 pts.append(r.points)
                 bss.append(r.blendshapes)
                 found.append(True)
+                if lips is not None:
+                    previous = _lip_motion(previous, rgb, r.points[lips, :2], flows)
         bar.close()
     if not any(found):
         raise NoFaceError(f"no face found in any of the {len(found)} frames of {path}")
@@ -101,7 +120,22 @@ def detect_video(
         points=np.stack(pts),
         blendshapes=np.stack(bss),
         found=np.asarray(found),
+        lip_points=None if lips is None else np.asarray(lips),
+        lip_flow=np.stack(flows) if lips is not None else None,
     )
+
+
+def _lip_motion(
+    previous: tuple[np.ndarray, np.ndarray] | None, rgb: np.ndarray, lips: np.ndarray, flows: list[np.ndarray]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Fills the flow between the previous frame (``previous``: its grey image and lip points, None when it
+    had no face) and this one into ``flows[-2][0]`` and ``flows[-1][1]``; returns this frame's."""
+    import cv2
+
+    grey = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+    if previous is not None:
+        flows[-2][0], flows[-1][1] = mouth_flow(previous[0], grey, previous[1], lips)
+    return grey, lips
 
 
 def count_faces(path: str | Path, samples: int = 8) -> int:

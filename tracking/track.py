@@ -27,6 +27,7 @@ from tracking.fit import (
     solve_frames,
     solve_sequence,
 )
+from tracking.lipflow import fuse, lip_landmarks
 
 log = logging.getLogger(__name__)
 
@@ -63,6 +64,10 @@ def fit_detections(
     lmv = model.landmark_vertices
     g = model.landmark_groups
     pts = det.points[:, : len(lmv)]
+    if det.lip_flow is not None and cfg.lip_flow > 0:  # the lips steadied by the image's motion
+        pts = pts.copy()
+        lips = det.lip_points
+        pts[:, lips, :2] = fuse(det.points[:, lips, :2], det.lip_flow[:, 0], det.lip_flow[:, 1], cfg.lip_flow)
     iod = interocular_distance(pts[found, :, :2], g["left_eye"], g["right_eye"])
     iod_px = float(np.median(iod))
     scale = cfg.sigma * iod_px
@@ -174,7 +179,8 @@ def track_video(
 ) -> tuple[TrackedSequence, Detections]:
     """Detect and fit a whole video. Returns the tracked sequence and the raw detections."""
     t0 = time.perf_counter()
-    det = detect_video(path, progress=progress, max_frames=max_frames)
+    model = model or default_face_model()
+    det = detect_video(path, progress=progress, max_frames=max_frames, lips=lip_landmarks(model))
     t_det = time.perf_counter() - t0
     seq = fit_detections(det, model, cfg)
     total = time.perf_counter() - t0
