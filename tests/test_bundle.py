@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import errno
 import shutil
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -181,3 +182,26 @@ def test_caches_are_keyed_by_content_and_damaged_entries_recomputed(demo_clip, t
     (npz,) = (tmp_path / "cache" / "features").glob("*.npz")
     npz.write_bytes(npz.read_bytes()[:100])  # a kill while it was written (before artifacts were atomic)
     np.testing.assert_array_equal(features_cached(a / "talk.mp4", tmp_path / "cache", "mel", 25.0, 30), w)
+
+
+def test_cached_tracking_made_with_other_tracker_settings_is_recomputed(demo_clip, tmp_path, monkeypatch):
+    import nvp.app.corpus as corpus
+    import tracking.track
+
+    calls = []
+    real = tracking.track.track_video
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(tracking.track, "track_video", counted)
+    video = tmp_path / "talk.mp4"
+    shutil.copyfile(demo_clip.path, video)
+    first = corpus.tracked_cached(video, tmp_path / "cache", progress=False)
+    again = corpus.tracked_cached(video, tmp_path / "cache", progress=False)
+    assert len(calls) == 1 and np.array_equal(first.expression, again.expression)
+    stale = dict(first.info, fit_config=dict(first.info["fit_config"], lip_flow=0.0))  # an older tracker
+    replace(first, info=stale).save(tmp_path / "cache" / "tracks" / corpus.cache_key(video))
+    corpus.tracked_cached(video, tmp_path / "cache", progress=False)
+    assert len(calls) == 2

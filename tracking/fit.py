@@ -57,10 +57,13 @@ class TrackingConfig:
     lip_flow: float = 0.8
     """How much of each frame's lip landmarks is predicted from its neighbours' moved by the optical flow
     between the frames rather than taken from its own detection (:func:`tracking.lipflow.fuse`; 0: the
-    detections alone). Re-creating held-out frames with the renderer trained on the plain tracking, the
-    mouth-box PSNR rose with 0.6 / 0.8 / 0.9 by 0.18 / 0.29 / 0.29 dB on dfrf__cnn2 and 0.21 / 0.37 / 0.41 on
-    edtalk__pose_source2, 0.50 with 0.8 on wav2lipgfpgan kim (the detections smoothed in time instead,
-    Gaussian σ 1 / 2 frames, lost 0.18 / 0.46 and 0.29 / 0.65 dB on the latter two)."""
+    detections alone). Re-creating held-out frames with renderers trained on the plain tracking
+    (``scripts/lower_face_limits.py``, mouth box, pooled PSNR), chosen on dfrf__cnn2 / edtalk__pose_source2
+    with flow over the whole frame: 0.6 / 0.8 / 0.9 gave +0.18 / +0.29 / +0.29 and +0.21 / +0.37 / +0.41 dB
+    (the detections smoothed in time instead, Gaussian σ 1 / 2 frames: −0.18 / −0.46 dB on edtalk). As built
+    (flow around the lips, :data:`tracking.lipflow.MARGIN`): dfrf__cnn2 29.04 → 29.33, edtalk 28.91 → 29.23,
+    wav2lipgfpgan kim 28.76 → 29.12; the test people minimates 27.56 → 27.83, multivsr 22.68 → 22.79,
+    voxceleb2_id00100 29.27 → 29.45 dB."""
     max_error: float = 0.06
     """A frame whose RMS reprojection error exceeds this fraction of the interocular distance is invalid."""
     chunk: int = 256

@@ -6,6 +6,7 @@ evaluation only processes new videos.
 
 from __future__ import annotations
 
+import json
 import logging
 from pathlib import Path
 
@@ -28,13 +29,17 @@ def cache_key(video: Path) -> str:
 
 def tracked_cached(video: Path, cache: Path, progress: bool = True) -> TrackedSequence:
     """The video's tracking, computed once and kept in ``cache/tracks/<key>`` (see :func:`cache_key`); a
-    damaged or outdated entry is recomputed."""
+    damaged or outdated entry (another face model, other tracker settings) is recomputed."""
+    from dataclasses import asdict
+
+    from tracking.fit import TrackingConfig
     from tracking.track import track_video
 
     out = cache / "tracks" / cache_key(video)
     try:
         seq = TrackedSequence.load(out)
-        if seq.face_model_sha256 == default_face_model().sha256:
+        settings = json.loads(json.dumps(asdict(TrackingConfig())))  # as stored (tuples become lists)
+        if seq.face_model_sha256 == default_face_model().sha256 and seq.info.get("fit_config") == settings:
             return seq
     except FormatError:
         pass
