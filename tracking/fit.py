@@ -55,15 +55,15 @@ class TrackingConfig:
     identity_rounds: int = 2
     """Alternations between per-frame fits and identity/focal updates on the keyframes."""
     lip_flow: float = 0.8
-    """How much of each frame's lip landmarks is predicted from its neighbours' moved by the optical flow
-    between the frames rather than taken from its own detection (:func:`tracking.lipflow.fuse`; 0: the
-    detections alone). Re-creating held-out frames with renderers trained on the plain tracking
-    (``scripts/lower_face_limits.py``, mouth box, pooled PSNR), chosen on dfrf__cnn2 / edtalk__pose_source2
-    with flow over the whole frame: 0.6 / 0.8 / 0.9 gave +0.18 / +0.29 / +0.29 and +0.21 / +0.37 / +0.41 dB
-    (the detections smoothed in time instead, Gaussian σ 1 / 2 frames: −0.18 / −0.46 dB on edtalk). As built
-    (flow around the lips, :data:`tracking.lipflow.MARGIN`): dfrf__cnn2 29.04 → 29.33, edtalk 28.91 → 29.23,
-    wav2lipgfpgan kim 28.76 → 29.12; the test people minimates 27.56 → 27.83, multivsr 22.68 → 22.79,
-    voxceleb2_id00100 29.27 → 29.45 dB."""
+    """How much of each frame's outer lip landmarks is predicted from its neighbours' moved by the optical
+    flow between the frames rather than taken from its own detection (:func:`tracking.lipflow.fuse`; 0: the
+    detections alone). Chosen on dfrf__cnn2 / edtalk__pose_source2 (held-out frames re-created by renderers
+    trained on the plain tracking, mouth box, pooled PSNR; flow over the whole frame, all lip landmarks):
+    0.6 / 0.8 / 0.9 gave +0.18 / +0.29 / +0.29 and +0.21 / +0.37 / +0.41 dB; the detections smoothed in time
+    instead (Gaussian σ 1 / 2 frames) −0.18 / −0.46 dB on edtalk. As built (outer contour,
+    :func:`tracking.lipflow.lip_landmarks`; ``scripts/lower_face_limits.py``): dfrf__cnn2 29.04 → 29.18,
+    edtalk 28.91 → 29.16, wav2lipgfpgan kim 28.76 → 29.09; the test people minimates 27.56 → 27.67, multivsr
+    22.68 → 22.77, voxceleb2_id00100 29.27 → 29.37 dB."""
     max_error: float = 0.06
     """A frame whose RMS reprojection error exceeds this fraction of the interocular distance is invalid."""
     chunk: int = 256
