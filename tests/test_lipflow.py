@@ -29,6 +29,8 @@ def test_mouth_flow_measures_a_known_motion_both_ways():
     forward, backward = mouth_flow(prev, cur, pts, pts + [1.5, -0.75])
     np.testing.assert_allclose(forward, np.tile([1.5, -0.75], (4, 1)), atol=0.15)
     np.testing.assert_allclose(backward, np.tile([-1.5, 0.75], (4, 1)), atol=0.15)
+    outside = pts + [200.0, 0.0]  # lips beyond the frame's right edge (a face cut off): not measured
+    assert np.isnan(np.concatenate(mouth_flow(prev, cur, outside, outside))).all()
 
 
 def test_fuse_steadies_noisy_detections_with_the_true_motion_and_restarts_where_it_breaks():

@@ -41,7 +41,8 @@ def mouth_flow(
     """Optical flow between two neighbouring grey frames ``prev`` and ``cur`` ``(H, W)`` uint8 around the
     lips: the motion ``(N, 2)`` (x, y pixels) from ``prev`` to ``cur`` at ``prev_points`` ``(N, 2)``, and
     from ``cur`` back to ``prev`` at ``points`` ``(N, 2)``. DIS optical flow (OpenCV) on the box around
-    both point sets only (:data:`MARGIN`, at most :data:`CROP_MAX` pixels on a side)."""
+    both point sets only (:data:`MARGIN`, at most :data:`CROP_MAX` pixels on a side); NaN when less than 16
+    pixels of that box lie inside the frame either way (lips at or beyond its edge)."""
     import cv2
 
     both = np.concatenate([prev_points, points])
@@ -50,6 +51,9 @@ def mouth_flow(
     h, w = cur.shape
     x0, y0 = int(max(np.floor(lo[0] - pad), 0)), int(max(np.floor(lo[1] - pad), 0))
     x1, y1 = int(min(np.ceil(hi[0] + pad), w)), int(min(np.ceil(hi[1] + pad), h))
+    if x1 - x0 < 16 or y1 - y0 < 16:
+        nothing = np.full((len(points), 2), np.nan, np.float32)
+        return nothing, nothing.copy()
     scale = min(1.0, CROP_MAX / max(x1 - x0, y1 - y0, 1))
     size = (max(int(round((x1 - x0) * scale)), 8), max(int(round((y1 - y0) * scale)), 8))
     a = cv2.resize(prev[y0:y1, x0:x1], size, interpolation=cv2.INTER_AREA)
