@@ -12,25 +12,26 @@ def _texture(size: int = 160, seed: int = 0) -> np.ndarray:
 
     rng = np.random.default_rng(seed)
     noise = cv2.GaussianBlur(rng.uniform(0, 255, (size, size)).astype(np.float32), (0, 0), 2.0)
-    return cv2.normalize(noise, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    grey = cv2.normalize(noise, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    return np.repeat(grey[..., None], 3, -1)
 
 
 def _shifted(img: np.ndarray, dx: float, dy: float) -> np.ndarray:
     import cv2
 
     m = np.float32([[1, 0, dx], [0, 1, dy]])
-    return cv2.warpAffine(img, m, img.shape[::-1], flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+    return cv2.warpAffine(img, m, img.shape[1::-1], flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
 
 
 def test_mouth_flow_measures_a_known_motion_both_ways():
     prev = _texture()
     cur = _shifted(prev, 1.5, -0.75)  # the content moves right and up
     pts = np.array([[60.0, 70.0], [90.0, 75.0], [75.0, 90.0], [70.0, 60.0]])
-    forward, backward = mouth_flow(prev, cur, pts, pts + [1.5, -0.75])
+    forward, backward = mouth_flow(prev, pts, cur, pts + [1.5, -0.75])
     np.testing.assert_allclose(forward, np.tile([1.5, -0.75], (4, 1)), atol=0.15)
     np.testing.assert_allclose(backward, np.tile([-1.5, 0.75], (4, 1)), atol=0.15)
     outside = pts + [200.0, 0.0]  # lips beyond the frame's right edge (a face cut off): not measured
-    assert np.isnan(np.concatenate(mouth_flow(prev, cur, outside, outside))).all()
+    assert np.isnan(np.concatenate(mouth_flow(prev, outside, cur, outside))).all()
 
 
 def test_fuse_steadies_noisy_detections_with_the_true_motion_and_restarts_where_it_breaks():

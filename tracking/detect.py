@@ -88,7 +88,7 @@ def detect_video(
     info = probe_video(path)
     total = info.num_frames if max_frames is None else min(info.num_frames, max_frames)
     pts, bss, found, flows = [], [], [], []
-    previous = None  # grey frame and lip points of the last frame, when it had a face
+    previous = None  # the last frame and its lip points, when it had a face
     with LandmarkDetector() as det:
         frames = iter_frames(path, max_frames=max_frames)
         bar = tqdm(total=total, desc=f"detect {Path(path).name}", unit="f", disable=not progress, leave=False)
@@ -109,7 +109,10 @@ def detect_video(
                 bss.append(r.blendshapes)
                 found.append(True)
                 if lips is not None:
-                    previous = _lip_motion(previous, rgb, r.points[lips, :2], flows)
+                    here = r.points[lips, :2]
+                    if previous is not None:
+                        flows[-2][0], flows[-1][1] = mouth_flow(*previous, rgb, here)
+                    previous = rgb, here
         bar.close()
     if not any(found):
         raise NoFaceError(f"no face found in any of the {len(found)} frames of {path}")
@@ -123,19 +126,6 @@ def detect_video(
         lip_points=None if lips is None else np.asarray(lips),
         lip_flow=np.stack(flows) if lips is not None else None,
     )
-
-
-def _lip_motion(
-    previous: tuple[np.ndarray, np.ndarray] | None, rgb: np.ndarray, lips: np.ndarray, flows: list[np.ndarray]
-) -> tuple[np.ndarray, np.ndarray]:
-    """Fills the flow between the previous frame (``previous``: its grey image and lip points, None when it
-    had no face) and this one into ``flows[-2][0]`` and ``flows[-1][1]``; returns this frame's."""
-    import cv2
-
-    grey = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
-    if previous is not None:
-        flows[-2][0], flows[-1][1] = mouth_flow(previous[0], grey, previous[1], lips)
-    return grey, lips
 
 
 def count_faces(path: str | Path, samples: int = 8) -> int:

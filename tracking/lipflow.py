@@ -36,9 +36,9 @@ def lip_landmarks(model) -> np.ndarray:
 
 
 def mouth_flow(
-    prev: np.ndarray, cur: np.ndarray, prev_points: np.ndarray, points: np.ndarray
+    prev: np.ndarray, prev_points: np.ndarray, cur: np.ndarray, points: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Optical flow between two neighbouring grey frames ``prev`` and ``cur`` ``(H, W)`` uint8 around the
+    """Optical flow between two neighbouring RGB frames ``prev`` and ``cur`` ``(H, W, 3)`` uint8 around the
     lips: the motion ``(N, 2)`` (x, y pixels) from ``prev`` to ``cur`` at ``prev_points`` ``(N, 2)``, and
     from ``cur`` back to ``prev`` at ``points`` ``(N, 2)``. DIS optical flow (OpenCV) on the box around
     both point sets only (:data:`MARGIN`, at most :data:`CROP_MAX` pixels on a side); NaN when less than 16
@@ -48,7 +48,7 @@ def mouth_flow(
     both = np.concatenate([prev_points, points])
     lo, hi = both.min(0), both.max(0)
     pad = MARGIN * (hi[0] - lo[0]) + 8
-    h, w = cur.shape
+    h, w = cur.shape[:2]
     x0, y0 = int(max(np.floor(lo[0] - pad), 0)), int(max(np.floor(lo[1] - pad), 0))
     x1, y1 = int(min(np.ceil(hi[0] + pad), w)), int(min(np.ceil(hi[1] + pad), h))
     if x1 - x0 < 16 or y1 - y0 < 16:
@@ -56,8 +56,10 @@ def mouth_flow(
         return nothing, nothing.copy()
     scale = min(1.0, CROP_MAX / max(x1 - x0, y1 - y0, 1))
     size = (max(int(round((x1 - x0) * scale)), 8), max(int(round((y1 - y0) * scale)), 8))
-    a = cv2.resize(prev[y0:y1, x0:x1], size, interpolation=cv2.INTER_AREA)
-    b = cv2.resize(cur[y0:y1, x0:x1], size, interpolation=cv2.INTER_AREA)
+    a, b = (
+        cv2.resize(cv2.cvtColor(x[y0:y1, x0:x1], cv2.COLOR_RGB2GRAY), size, interpolation=cv2.INTER_AREA)
+        for x in (prev, cur)
+    )
     dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
     sx, sy = size[0] / (x1 - x0), size[1] / (y1 - y0)
 
