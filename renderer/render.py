@@ -248,9 +248,11 @@ class FrameRenderer:
         vertices_cam: np.ndarray,
         original_cam: np.ndarray | None = None,
         source: tuple[np.ndarray, int, np.ndarray] | None = None,
+        whole: bool = False,
     ) -> FaceRender:
         """The networks' render of ``vertices_cam`` over footage frame ``index`` and what the paste needs
-        (arguments as :meth:`render`), before a mouth-bank entry is chosen."""
+        (arguments as :meth:`render`), before a mouth-bank entry is chosen. ``whole``: the networks render
+        the whole crop, not only the part around the painted lower face (:func:`network_window`)."""
         # only the frame pixels under the crop box are read and written: they are taken out of the frame
         # (2 pixels more for the bilinear samples) and every pixel position below is relative to them
         # (box and principal point shifted alike, so the crop camera is the same)
@@ -282,7 +284,8 @@ class FrameRenderer:
         # painted part the footage keeps its full-resolution detail too (the crop is softer), while inside
         # it nothing of the footage's own mouth and chin shows through
         paint = face_region((lower > LOWER_FACE).float(), self.preset.region_grow) * region
-        dev, (rows, cols) = self.device, network_window(paint, self.window_margin)
+        margin = self.preset.crop if whole else self.window_margin
+        dev, (rows, cols) = self.device, network_window(paint, margin)
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.bf16):
             _, inside = self.net(
                 geo.uv[:, rows, cols].to(dev),

@@ -1,8 +1,10 @@
 """Lower-face quality where nvp paints (issue 15): region / mouth-box PSNR, sharpness, seams, baselines.
 
 For each video: tracking (cached), a renderer trained on the first 80 % (``scripts/eval_renderer.py``'s
-output folder, trained here if missing), the person's style solved on the same 80 %; then every ``--step``-th
-held-out frame ``t`` is re-created several ways and compared with the real frame in
+output folder, trained here if missing), every frame's tracking registered to it as ``nvp fit`` / ``nvp eval``
+do (:mod:`renderer.register`), the person's style solved on the same 80 %; then every ``--step``-th
+held-out frame ``t`` is re-created several ways and compared with the real frame (``psnr_frame``: the whole
+frame) and in
 
 - the *painted region* (where nvp's render weighs ≥ 0.5 in the output) and
 - the *mouth box* (mediapipe lip landmarks of the real frame, grown by 60 % of the mouth width); its
@@ -78,6 +80,22 @@ def _style_and_audio_expressions(video: Path, seq, split: int, cache: Path):
     return predict_expressions(audio, rate, seq.fps, style, net, num_frames=seq.num_frames - split)
 
 
+def registered_tracking(video: Path, seq, rdir: Path):
+    """``seq`` registered to the renderer in ``rdir`` as ``nvp fit`` and ``nvp eval`` register it
+    (:mod:`renderer.register`, every frame); the offsets are kept in ``rdir/registration.npy`` (a mouth
+    bank built before them, on the unregistered tracking, is removed so that it is built again)."""
+    from nvp.face_model import default_face_model
+    from renderer.register import registered, registration_offsets
+
+    path = rdir / "registration.npy"
+    if not path.exists():
+        offsets = registration_offsets(rdir, video, seq, np.arange(seq.num_frames), progress=False)
+        for name in ("mouths.json", "mouths.npz"):
+            (rdir / name).unlink(missing_ok=True)
+        np.save(path, offsets)
+    return registered(seq, default_face_model(), np.load(path))
+
+
 def _retrieval(frames_by_index, seq, model, t: int, train: np.ndarray, boxes, weight, real):
     """Baseline: the training frame whose tracked lip vertices are nearest to frame ``t``'s, its pixels
     pasted into the painted region by the crop-box similarity (full resolution)."""
@@ -116,6 +134,7 @@ def evaluate(
         seam_gradient_ratio,
     )
     from nvp.media import frames_at
+    from nvp.metrics import psnr
     from renderer.render import FrameRenderer
     from tracking.landmarks import LandmarkDetector
 
@@ -142,6 +161,8 @@ def evaluate(
         )
         trained.write_text(json.dumps(numbers, indent=2) + "\n")
     whole = json.loads(trained.read_text())
+    if args.register:
+        seq = registered_tracking(video, seq, rdir)
     if not (rdir / "mouths.json").exists():  # the person's mouth bank, from training frames only
         from renderer.mouths import bank_frames, build_mouth_bank, sequence_shapes
 
@@ -210,6 +231,7 @@ def evaluate(
                 energies[k].append((high_frequency_energy(img, box), laplacian_energy(img, box)))
                 rows[k].append(
                     {
+                        "psnr_frame": psnr(img, real),
                         "psnr_painted": masked_psnr(img, real, painted),
                         "psnr_mouth": masked_psnr(img, real, in_box),
                         "ssim_mouth": masked_ssim(img, real, in_box),
@@ -266,6 +288,13 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--step", type=int, default=5, help="evaluate every n-th held-out frame")
     ap.add_argument("--max-frames", type=int, default=60, help="at most this many frames per video")
+    ap.add_argument(
+        "--no-register",
+        dest="register",
+        action="store_false",
+        help="keep the tracker's own head placement (as before renderer.register; use another --out: the "
+        "mouth bank is built from the tracking)",
+    )
     sys.path.insert(0, str(Path(__file__).parent))
     from eval_renderer import add_variant_arguments
 

@@ -63,11 +63,14 @@ def limits(video: Path, out: Path, cache: Path, step: int, max_frames: int, sigm
     from renderer.render import FrameRenderer
     from tracking.landmarks import LandmarkDetector
 
+    sys.path.insert(0, str(Path(__file__).parent))
+    from eval_lower_face import registered_tracking
+
     rdir = out / video.stem
-    if not (rdir / "renderer.json").exists():
-        raise SystemExit(f"no renderer in {rdir}: run scripts/eval_lower_face.py --out {out} first")
+    if not (rdir / "registration.npy").exists():  # its renderer, registration and mouth bank
+        raise SystemExit(f"no registered renderer in {rdir}: run eval_lower_face.py --out {out} first")
     model = default_face_model()
-    seq = tracked_cached(video, cache, progress=False)
+    seq = registered_tracking(video, tracked_cached(video, cache, progress=False), rdir)
     split = int(round(seq.num_frames * 0.8))
     held = np.arange(split, seq.num_frames)
     test = held[:-1][::step][:max_frames]

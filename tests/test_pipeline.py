@@ -11,6 +11,7 @@ import soundfile as sf
 from test_cli import assert_one_line_error, nvp
 
 from nvp.bundle import BundleBuilder
+from nvp.face_model import default_face_model
 from nvp.media import probe_video, read_audio
 
 
@@ -34,7 +35,13 @@ def bundle(demo_clip, tmp_path_factory):
 def test_fit_writes_a_complete_bundle(bundle):
     m = json.loads((bundle / "bundle.json").read_text())
     assert m["format"] == "nvp.person_bundle" and m["version"] == 1
-    assert set(m["stages"]) == {"target", "track", "style", "renderer", "mouths"}
+    assert set(m["stages"]) == {"target", "track", "style", "renderer", "register", "mouths"}
+    # the tracking is registered to the renderer (renderer.register); the tracker's own output is gone
+    tracked = json.loads((bundle / "tracked" / "tracked.json").read_text())
+    assert tracked["info"]["registration"] == {
+        k: m["stages"]["register"][k] for k in tracked["info"]["registration"]
+    }
+    assert not (bundle / "tracked_unregistered").exists()
     assert (bundle / "renderer" / "renderer.json").exists() and (bundle / "style.json").exists()
     # the demo talker opens its mouth: its open-mouth frames make a mouth bank next to the renderer
     assert m["stages"]["mouths"]["entries"] > 0 and (bundle / "renderer" / "mouths.json").exists()
@@ -119,6 +126,51 @@ def test_fit_resumes_after_an_interruption(demo_clip, tmp_path, monkeypatch):
     with pytest.raises(Exception, match="other settings"):
         BundleBuilder(tmp_path / "q", {"preset": "cpu"})
         BundleBuilder(tmp_path / "q", {"preset": "quality"})
+
+
+def test_an_interrupted_registration_starts_again_from_the_trackers_output(demo_clip, tmp_path, monkeypatch):
+    import renderer.register
+    from nvp.app import fit as pipeline
+    from nvp.tracked import TrackedSequence
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(renderer.register, "registration_offsets", interrupted)
+    cfg = pipeline.FitConfig(steps=2)
+    with pytest.raises(KeyboardInterrupt):
+        pipeline.fit(demo_clip.path, tmp_path / "p", cfg, progress=False)
+    work = tmp_path / "p.partial"
+    tracker = TrackedSequence.load(work / "tracked")
+    np.testing.assert_array_equal(
+        TrackedSequence.load(work / "tracked_unregistered").translation, tracker.translation
+    )
+
+    def constant(renderer_dir, video, seq, indices, *a, **k):
+        return np.tile([0.5, -0.25], (len(indices), 1))
+
+    monkeypatch.setattr(renderer.register, "registration_offsets", constant)
+    original = BundleBuilder.mark_done
+
+    def dies_after_saving(self, stage, **facts):  # registered tracking written, the stage not yet marked
+        if stage == "register":
+            raise KeyboardInterrupt
+        original(self, stage, **facts)
+
+    monkeypatch.setattr(BundleBuilder, "mark_done", dies_after_saving)
+    with pytest.raises(KeyboardInterrupt):
+        pipeline.fit(demo_clip.path, tmp_path / "p", cfg, progress=False)
+    monkeypatch.setattr(BundleBuilder, "mark_done", original)
+    bundle = pipeline.fit(demo_clip.path, tmp_path / "p", cfg, progress=False)
+    # moved once from the tracker's output, not twice
+    out = TrackedSequence.load(bundle.path("tracked"))
+    model = default_face_model()
+    frames = np.arange(out.num_frames)[tracker.valid]
+    moved = out.pixels(out.camera_vertices(model, frames)) - tracker.pixels(
+        tracker.camera_vertices(model, frames)
+    )
+    np.testing.assert_allclose(moved.mean(1), np.tile([0.5, -0.25], (len(frames), 1)), atol=0.01)
+    assert not (tmp_path / "p" / "tracked_unregistered").exists()
 
 
 def test_fit_needs_audio(tmp_path):

@@ -29,7 +29,7 @@ from __future__ import annotations
 import json
 import logging
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -198,6 +198,7 @@ def evaluate_video(
     from nvp.provenance import synthetic_mark
     from nvp.tracked import TrackedSequence
     from renderer.crop import box_slices
+    from renderer.register import registered, registration_offsets
     from renderer.render import FrameRenderer, render_frames
     from tracking.landmarks import LandmarkDetector
     from tracking.track import track_video
@@ -230,9 +231,17 @@ def evaluate_video(
         cfg.preset, cfg.budget_minutes, cfg.steps, cfg.features, cfg.device, renderer_init=cfg.renderer_init
     )
     bundle = fit(train_clip, out / "person", fcfg, progress, tracked=seq.head(split))
+    # the fit registered the training part to its renderer (renderer.register); the held-out part the same
+    offsets = np.zeros((seq.num_frames, 2))
+    offsets[split:] = registration_offsets(
+        bundle.path("renderer"), video, seq, np.arange(split, seq.num_frames), cfg.device, progress
+    )
+    head = TrackedSequence.load(bundle.path("tracked"))
+    model = default_face_model()
+    seq = registered(seq, model, offsets)
+    seq = replace(seq, translation=np.concatenate([head.translation, seq.translation[split:]]))
     t_fit = time.perf_counter() - t0
 
-    model = default_face_model()
     style = PersonStyle.load(bundle.path("style"))
     net, _ = default_audio2exp(style.feature_kind)
     rate = audio_rate(video)
