@@ -115,7 +115,7 @@ def registration_offsets(
             region = ((face.geo.region[0, 0] > 0.5) & (face.geo.mask[0, 0] > 0.5)).numpy()
             region &= cv2.dilate(on_lips, np.ones((grow, grow), np.uint8)) == 0
             crop, render = (
-                (x.permute(1, 2, 0).float() * 255).round().clamp(0, 255).byte().numpy()
+                (x.permute(1, 2, 0).float().cpu() * 255).round().clamp(0, 255).byte().numpy()
                 for x in (face.crop, face.render)
             )
             # crop pixels to frame pixels: the box side over the crop side

@@ -418,6 +418,9 @@ def test_training_and_rendering_on_cuda(footage, face_model, tmp_path):
     v = seq.camera_vertices(face_model, np.array([0]))[0]
     with FrameRenderer(tmp_path, face_model, seq, device="cuda") as fr:
         assert fr.render(np.zeros((SIZE, SIZE, 3), np.uint8), 0, v).shape == (SIZE, SIZE, 3)
+    from renderer.register import registration_offsets
+
+    assert registration_offsets(tmp_path, path, seq, [0, 1], device="cuda", progress=False).shape == (2, 2)
 
 
 @pytest.mark.parametrize("r", [1, 4, 12])
@@ -452,6 +455,18 @@ def test_the_renderer_learns_loss_falls_and_a_held_out_frame_improves(footage, f
         return np.abs(out.astype(float) - real).mean()
 
     assert error(tmp_path / "trained") < 0.7 * error(tmp_path / "untrained")
+
+    # registration (renderer.register): tracking moved right and up off the footage is measured back left
+    # and down (this tiny renderer's 32-px crop blurs the face, and offsets stop at 2 / 192 of the crop: the
+    # measured change is 1.1-1.5 / 0.4-0.6 px of the 2 / 1 px)
+    from renderer.register import registered, registration_offsets
+
+    frames = np.arange(12)
+    exact = registration_offsets(tmp_path / "trained", path, seq, frames, progress=False)
+    moved = registered(seq, face_model, np.tile([2.0, -1.0], (12, 1)))
+    back = registration_offsets(tmp_path / "trained", path, moved, frames, progress=False)
+    change = np.median(back - exact, 0)
+    assert change[0] < -0.8 and change[1] > 0.25, change
 
 
 def test_a_timed_renderer_training_shows_seconds_and_time_left(footage, face_model, tmp_path, capsys):
