@@ -242,7 +242,8 @@ UNREGISTERED = "tracked_unregistered"
 """The tracker's own output, kept in the work folder while the registration stage rewrites ``tracked``."""
 
 REGISTER_S_PER_FRAME = 0.03
-"""Rough registration time per frame on a 2-core CPU (a network pass over the whole crop)."""
+"""Rough registration time per frame on a 2-core CPU (a network pass over the whole crop; 20-22 ms measured
+idle at 256², 512² and 1080p)."""
 
 
 def _register(builder: BundleBuilder, cfg: FitConfig, progress: bool) -> dict:
