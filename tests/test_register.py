@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from test_lipflow import _shifted, _texture
 
-from nvp.tracked import TrackedSequence
 from renderer.register import MAX_SHIFT, frame_offset, registered
+from tracking.synthetic import synthetic_tracked
 
 
 def test_frame_offset_measures_how_far_the_render_lies_from_the_footage():
@@ -25,36 +27,14 @@ def test_frame_offset_measures_how_far_the_render_lies_from_the_footage():
     assert np.isnan(frame_offset(crop, render, tiny)).all()
 
 
-def _sequence(model, frames: int = 4) -> TrackedSequence:
-    rng = np.random.default_rng(0)
-    angle = 0.3
-    turn = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
-    return TrackedSequence(
-        fps=25.0,
-        width=640,
-        height=480,
-        focal=800.0,
-        center=np.array([320.0, 240.0], np.float32),
-        identity=np.zeros(model.num_id, np.float32),
-        rotation=np.tile(turn.astype(np.float32), (frames, 1, 1)),
-        translation=np.array([[1.0, -2.0, 45.0]] * frames, np.float32) + rng.normal(0, 0.5, (frames, 3)),
-        expression=np.zeros((frames, model.num_exp), np.float32),
-        landmarks=np.zeros((frames, 3, 2), np.float32),
-        valid=np.ones(frames, bool),
-        fit_error=np.zeros(frames, np.float32),
-        face_model_sha256=model.sha256,
-        info={"tracker": "test"},
-    )
-
-
 def test_registered_moves_the_projected_face_by_the_offsets(face_model):
-    seq = _sequence(face_model)
+    seq = replace(synthetic_tracked(face_model, frames=4), info={"tracker": "test"})  # a turned, posed face
     offsets = np.array([[0.5, -0.25], [0.0, 0.0], [np.nan, np.nan], [-1.5, 1.0]])
     out = registered(seq, face_model, offsets)
     frames = np.arange(seq.num_frames)
     before, after = (s.pixels(s.camera_vertices(face_model, frames)) for s in (seq, out))
     moved = after - before
-    # on average exactly; the face's nearest and farthest points (37-50 cm away) within 20 % of it
+    # on average exactly; the face's nearest and farthest points within 20 % of it (perspective)
     np.testing.assert_allclose(moved.mean(1), np.nan_to_num(offsets), atol=0.01)
     spread = np.abs(moved - np.nan_to_num(offsets)[:, None]).max(1)
     assert (spread <= 0.2 * np.abs(np.nan_to_num(offsets)) + 1e-3).all()
