@@ -27,8 +27,7 @@ class MovedDetail:
         source_crop: ``(C, S, S)`` its crop at ``source_box`` (same value range).
         source_box: ``(3,)`` that crop's box in ``source``'s pixels.
         positions: ``(S, S, 2)`` the source pixel (x, y) showing the surface point seen at each crop pixel
-            (:func:`renderer.warp.source_positions`; the pixel itself where ``band`` takes a frame's own
-            background).
+            (:func:`renderer.warp.source_positions`).
         fine: ``(S, S)`` weight of the detail finer than the crop (1 where the source sees the point).
         band: ``(S, S)`` weight (at most ``fine``) of the band between the crop's resolution and ``sigma``
             crop pixels, which replaces the render's (where the surface also moved rigidly; 0 for none).
@@ -36,6 +35,10 @@ class MovedDetail:
         render_band: ``(C, S, S)`` the render's own band finer than ``sigma`` (see
             :func:`renderer.warp.smooth`), in the crop's value range.
         sigma: the band's scale in crop pixels.
+        kept: ``(S, S)`` weight of the *painted frame's own* detail finer than ``sigma`` off the mesh, in
+            place of the render's (the band around the surface the networks paint, where the footage's own
+            pixels are right: :meth:`renderer.render.FrameRenderer._kept_background`), whatever the
+            source; None for none. Needs :func:`paste_region`'s ``detail``.
     """
 
     source: torch.Tensor
@@ -46,6 +49,7 @@ class MovedDetail:
     band: torch.Tensor
     render_band: torch.Tensor
     sigma: float
+    kept: torch.Tensor | None = None
 
 
 def _gaussian_smooth(x: np.ndarray, sigma: float) -> np.ndarray:
@@ -217,16 +221,28 @@ def paste_region(
     if detail is not None:
         maps += [detail[0][None].float(), detail[1].expand(1, 1, s, s)]
     n_maps = sum(m.shape[1] for m in maps)
+    kept = moved is not None and moved.kept is not None and detail is not None
+    c = crop.shape[0]
     if moved is not None:
-        maps += [
-            moved.positions.permute(2, 0, 1)[None].float(),
-            (moved.fine[None, None] * paint).float(),
-            moved.band[None, None].float(),
-            moved.render_band[None].float(),
-        ]
+        valid = moved.fine[None, None].float()
+        named = {  # the moved detail's maps, sampled with the crop's
+            # the surface's source positions weighted by where they are valid (normalised below: a frame
+            # pixel beside the silhouette reads the surface's positions, not those off it)
+            "positions": moved.positions.permute(2, 0, 1)[None].float() * valid,
+            "valid": valid,
+            "fine": valid * paint,
+            "band": moved.band[None, None].float(),
+            "kept": moved.kept[None, None].float() if kept else torch.zeros(1, 1, s, s),
+            "render_band": moved.render_band[None].float(),
+        }
+        if kept:  # inside the painted part the frame's own detail finer than the crop; its crop's low-pass
+            named |= {
+                "kept_fine": named["kept"] * paint,
+                "own_low": smooth(detail[0][None].float(), moved.sigma),
+            }
+        maps += list(named.values())
     stacked = torch.cat(maps, 1)
     sampled = F.grid_sample(stacked, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
-    c = crop.shape[0]
     rgb, a = sampled[0, :c], sampled[0, c : c + 1]
     under = frame[:, y0:y1, x0:x1]
     blended = a * rgb + (1 - a) * under
@@ -234,25 +250,35 @@ def paste_region(
         low, keep = sampled[0, c + 1 : 2 * c + 1], sampled[0, 2 * c + 1 : 2 * c + 2]
         blended = blended + a * keep * (under - low)
     if moved is not None:
+        got = dict(
+            zip(named, torch.split(sampled[0, n_maps:], [m.shape[1] for m in named.values()]), strict=True)
+        )
         # only over the rows and columns where any detail is added (the painted lower face, not the box)
-        weights = sampled[0, n_maps + 2 : n_maps + 4]
-        on = weights.amax(0) > 0
+        on = torch.cat([got["fine"], got["band"], got["kept"]]).amax(0) > 0
         rows, cols = torch.nonzero(on.any(1))[:, 0], torch.nonzero(on.any(0))[:, 0]
         if len(rows):
             r, k = slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1)
-            part = sampled[0, :, r, k]
-            pos = part[n_maps : n_maps + 2].permute(1, 2, 0)  # (h, w, 2) source-frame pixels
-            fine, band, render_band = (
-                part[n_maps + 2 : n_maps + 3],
-                part[n_maps + 3 : n_maps + 4],
-                part[n_maps + 4 :],
-            )
+            part = {name: m[:, r, k] for name, m in got.items()}
+            pos = (part["positions"] / part["valid"].clamp_min(1e-6)).permute(1, 2, 0)  # source-frame pixels
             sx, sy, sside = (float(v) for v in moved.source_box)
             crop_pos = (pos - torch.tensor([sx - sside / 2, sy - sside / 2])) * (s / sside)
             src_crop = moved.source_crop[None].float()
             low = sample_pixels(torch.cat([src_crop, smooth(src_crop, moved.sigma)], 1)[0], crop_pos)
             source = sample_pixels(moved.source, pos, "bicubic")
-            detail = moved_detail(source, low[:c], low[c:], render_band, fine, band)
+            render_band = part["render_band"]
+            detail = moved_detail(source, low[:c], low[c:], render_band, part["fine"], part["band"])
+            if kept:  # the frame's own band (its crop minus that crop's low-pass) and its detail finer than
+                # the crop inside the painted part (outside it ``detail`` adds that already)
+                crop_res = sampled[0, c + 1 : 2 * c + 1, r, k]
+                own = (
+                    under[:, r, k],
+                    crop_res,
+                    part["own_low"],
+                    render_band,
+                    part["kept_fine"],
+                    part["kept"],
+                )
+                detail = detail + moved_detail(*own)
             blended[:, r, k] += a[:, r, k] * detail
     if interior is not None:
         _paste_interior(blended, rgb, a, (y0, x0), box, s, interior)

@@ -270,12 +270,13 @@ class FrameRenderer:
             region, lower = torch.maximum(region, orig.region), torch.maximum(lower, orig.lower)
         img = torch.from_numpy(frame[ys, xs]).permute(2, 0, 1).float()
         crop = cut(img[None], torch.from_numpy(box[None]).float(), self.preset.crop) / 255
-        source_in, moved, src_geo = None, None, None
+        source_in, moved = None, None
+        # the footage frame's own geometry (its background off the mesh is kept, whatever the source)
+        own_cam, own_geo = (vertices_cam, geo) if original_cam is None else (original_cam, orig)
         if self.detail or self.net.source_input:
             if source is None:  # this very frame under its own tracked geometry
-                cam, src_geo = (vertices_cam, geo) if original_cam is None else (original_cam, orig)
-                source_in, moved = self._moved(geo, img, index, cam, src_geo, crop[0], offset[:2])
-                source = (frame, index, cam)
+                source_in, moved = self._moved(geo, img, index, own_cam, own_geo, crop[0], offset[:2])
+                source = (frame, index, own_cam)
             else:
                 src_img = torch.from_numpy(source[0]).permute(2, 0, 1).float()
                 source_in, moved = self._moved(geo, src_img, source[1], source[2])
@@ -297,7 +298,7 @@ class FrameRenderer:
             )
         inside = inside.float()
         if self.detail:  # the footage's band of skin detail too where the surface moved rigidly
-            moved = self._band(moved, inside, (rows, cols), geo, src_geo, vertices_cam, index, source)
+            moved = self._band(moved, inside, (rows, cols), geo, own_geo, vertices_cam, own_cam, source)
         final = crop.to(inside).clone()  # outside the window the crop itself (its paste weight is 0)
         final[..., rows, cols] = inside
         # where a bank entry's interior may go, and the lips its colours follow: found once per frame
@@ -414,42 +415,41 @@ class FrameRenderer:
         inside: torch.Tensor,
         window: tuple[slice, slice],
         geo: FrameGeometry,
-        src_geo: FrameGeometry | None,
+        own_geo: FrameGeometry,
         vertices_cam: np.ndarray,
-        index: int,
+        own_cam: np.ndarray,
         source: tuple[np.ndarray, int, np.ndarray],
     ) -> MovedDetail:
         """``moved`` with the band of detail finer than :data:`BAND_SIGMA` crop pixels taken from the
-        source where the surface moved rigidly (:data:`STRAIN_LIMIT`) — and, when the source is this very
-        frame (``src_geo``), from its own pixels in the band off the mesh that the networks paint (see
-        :meth:`_kept_background`); ``inside`` ``(1, C, h, w)`` is the networks' render over ``window``."""
+        source where the surface moved rigidly (:data:`STRAIN_LIMIT`), and from the painted frame's own
+        pixels in the band off the mesh that the networks paint (:meth:`_kept_background`; the footage
+        frame's geometry ``own_geo`` / ``own_cam``: a detail source from another frame changes the surface's
+        detail, not what lies around it); ``inside`` ``(1, C, h, w)`` is the networks' render over
+        ``window``."""
         rows, cols = window
-        rigid = rigidity(vertices_cam, source[2], self._edges, STRAIN_LIMIT)
         tri, bary = geo.triangle_id[rows, cols], geo.barycentric[rows, cols]
-        rigid_px = surface_points(tri, bary, self._triangles, torch.from_numpy(rigid)[:, None])[..., 0]
+
+        def rigid_pixels(cam: np.ndarray) -> torch.Tensor:
+            rigid = torch.from_numpy(rigidity(vertices_cam, cam, self._edges, STRAIN_LIMIT))
+            return surface_points(tri, bary, self._triangles, rigid[:, None])[..., 0]
+
+        rigid_px = rigid_pixels(source[2])
         band = torch.zeros_like(moved.fine)
         band[rows, cols] = moved.fine[rows, cols] * rigid_px
-        fine, positions = moved.fine.clone(), moved.positions.clone()
-        if src_geo is not None:  # the source is this frame: its background is this frame's too
-            background = (tri < 0) & (src_geo.triangle_id[rows, cols] < 0)
-            kept = self._kept_background(background, tri >= 0, rigid_px)
-            band[rows, cols] = torch.where(background, kept, band[rows, cols])
-            fine[rows, cols] = torch.where(background, kept, fine[rows, cols])
-            # there the source pixel is the pixel itself
-            size, side = self.preset.crop, float(moved.source_box[2])
-            centres = (torch.arange(size, dtype=torch.float32) + 0.5) * (side / size)
-            origin = torch.as_tensor(moved.source_box[:2] - side / 2, dtype=torch.float32)
-            own = torch.stack(torch.meshgrid(centres, centres, indexing="xy"), -1) + origin
-            positions[rows, cols] = torch.where(background[..., None], own[rows, cols], positions[rows, cols])
+        background = (tri < 0) & (own_geo.triangle_id[rows, cols] < 0)
+        own_rigid = rigid_px if own_cam is source[2] else rigid_pixels(own_cam)
+        kept = torch.zeros_like(moved.fine)
+        kept[rows, cols] = self._kept_background(background, tri >= 0, own_rigid)
         # fade the band out within about a crop pixel of the border of what the source shows (the
         # silhouette, an occlusion; not the mouth interior, which has its own pixels): a source point there
         # may sit on an edge of the source frame, whose moved detail drew a dotted line along the jaw
-        shown = (fine[rows, cols] > 0) | (geo.mouth[0, 0, rows, cols] > 0)
-        cover = smooth(shown[None, None].float(), 1.0)[0, 0]
-        band[rows, cols] *= ((cover - 0.5) * 2).clamp(0, 1)
+        shown = (moved.fine[rows, cols] > 0) | (kept[rows, cols] > 0) | (geo.mouth[0, 0, rows, cols] > 0)
+        fade = ((smooth(shown[None, None].float(), 1.0)[0, 0] - 0.5) * 2).clamp(0, 1)
+        band[rows, cols] *= fade
+        kept[rows, cols] *= fade
         render_band = torch.zeros(inside.shape[1], *band.shape)
         render_band[:, rows, cols] = (inside - smooth(inside, BAND_SIGMA))[0] * 255
-        return replace(moved, fine=fine, band=band, positions=positions, render_band=render_band)
+        return replace(moved, band=band, render_band=render_band, kept=kept)
 
     def _kept_background(
         self, background: torch.Tensor, surface: torch.Tensor, rigid_px: torch.Tensor

@@ -121,6 +121,33 @@ def test_paste_with_the_frame_as_its_own_source_gives_the_frame_back():
     assert float((pasted[inner] - real).abs().mean()) < 0.1 * float((plain[inner] - real).abs().mean())
 
 
+def test_paste_reads_the_source_only_at_valid_surface_positions():
+    """Beside the edge of what the source shows (a silhouette, the mouth interior) a frame pixel lies
+    between crop pixels with and without a surface position: it reads the source where the surface's own
+    positions point, not halfway to the meaningless position of a pixel off it (that drew a dotted line
+    along a dub's jaw)."""
+    from renderer.crop import MovedDetail, paste_region
+
+    box, size = np.array([60.0, 60.0, 96.0]), 48
+    g = torch.Generator().manual_seed(1)
+    frame = torch.rand(3, 120, 120, generator=g) * 255  # noise wherever the source is not flat
+    frame[:, :, 12:60] = 100.0  # the left half of the box, where the valid positions point
+    centres = (torch.arange(size, dtype=torch.float32) + 0.5) * (box[2] / size) + float(box[0] - box[2] / 2)
+    positions = torch.stack(torch.meshgrid(centres, centres, indexing="xy"), -1)
+    valid = torch.zeros(size, size)
+    valid[:, :23] = 1.0
+    positions[valid == 0] = 100.0  # off the surface the position means nothing (here: in the noise)
+    flat = torch.full((3, size, size), 100.0)
+    moved = MovedDetail(frame, flat, box, positions, valid, valid, torch.zeros(3, size, size), 2.0)
+    ones = torch.ones(1, 1, size, size)
+    pasted, _, (rows, cols) = paste_region(
+        torch.full_like(frame, 100.0), flat, box, ones, moved=moved, paint=ones
+    )
+    # every pixel that got any detail shows the flat source (the box's own edge pixels aside: the crop's
+    # bilinear samples there reach outside it)
+    assert float((pasted[:, 2:-2, 2:-2] - 100.0).abs().max()) < 1.0
+
+
 def quad(z: float = 10.0, shift: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     v = np.array([[-1, -1, z], [1, -1, z], [1, 1, z], [-1, 1, z]], np.float64)
     v[:, 0] += shift
