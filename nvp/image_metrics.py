@@ -53,15 +53,35 @@ def _gray(img: np.ndarray) -> np.ndarray:
     return img.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)
 
 
-def high_frequency_energy(img: np.ndarray, box: Box) -> float:
-    """Mean squared difference between the image and its 5×5 Gaussian blur (grey levels) inside ``box``:
-    the energy of the finest detail (stubble, pores, teeth edges)."""
+def high_frequency(img: np.ndarray, box: Box) -> np.ndarray:
+    """``(h, w)`` float32: the image minus its 5×5 Gaussian blur (grey levels) inside ``box``, the finest
+    detail (stubble, pores, teeth edges); blurred over the whole image, so the box's edge is not one."""
     import cv2
 
     g = _gray(img)
-    hf = g - cv2.GaussianBlur(g, (5, 5), 0)
     y0, y1, x0, x1 = box
-    return float(np.mean(hf[y0:y1, x0:x1] ** 2))
+    return (g - cv2.GaussianBlur(g, (5, 5), 0))[y0:y1, x0:x1]
+
+
+def high_frequency_energy(img: np.ndarray, box: Box) -> float:
+    """Mean square of :func:`high_frequency` inside ``box``: how much fine detail there is."""
+    return float(np.mean(high_frequency(img, box) ** 2))
+
+
+def high_frequency_agreement(fake: np.ndarray, real: np.ndarray, box: Box) -> float:
+    """Mean product of the two images' :func:`high_frequency` inside ``box``. Over
+    ``sqrt(energy(fake) * energy(real))`` it is the correlation of their fine detail: 1 when the fake's detail
+    is the real one's, 0 for detail unrelated to it (grain, specks, another frame's stubble a few pixels
+    off) — which the energy ratio counts as sharpness. Pooled over frames by :func:`detail_in_place`."""
+    return float(np.mean(high_frequency(fake, box) * high_frequency(real, box)))
+
+
+def detail_in_place(agreement: np.ndarray, energy: np.ndarray, real_energy: np.ndarray) -> float:
+    """Correlation of a re-creation's fine detail with the footage's, pooled over frames: the sums of
+    per-frame :func:`high_frequency_agreement` over the root of the product of the summed
+    :func:`high_frequency_energy` of the two (1.0 = the footage's detail, in place; NaN without any)."""
+    norm = float(np.sqrt(np.sum(energy) * np.sum(real_energy)))
+    return float(np.sum(agreement) / norm) if norm > 0 else float("nan")
 
 
 def laplacian_energy(img: np.ndarray, box: Box) -> float:

@@ -27,7 +27,8 @@ class MovedDetail:
         source_crop: ``(C, S, S)`` its crop at ``source_box`` (same value range).
         source_box: ``(3,)`` that crop's box in ``source``'s pixels.
         positions: ``(S, S, 2)`` the source pixel (x, y) showing the surface point seen at each crop pixel
-            (:func:`renderer.warp.source_positions`).
+            (:func:`renderer.warp.source_positions`; the pixel itself where the source is the painted frame
+            and its own background is kept); read only where ``fine`` > 0.
         fine: ``(S, S)`` weight of the detail finer than the crop (1 where the source sees the point).
         band: ``(S, S)`` weight (at most ``fine``) of the band between the crop's resolution and ``sigma``
             crop pixels, which replaces the render's (where the surface also moved rigidly; 0 for none).
@@ -37,8 +38,9 @@ class MovedDetail:
         sigma: the band's scale in crop pixels.
         kept: ``(S, S)`` weight of the *painted frame's own* detail finer than ``sigma`` off the mesh, in
             place of the render's (the band around the surface the networks paint, where the footage's own
-            pixels are right: :meth:`renderer.render.FrameRenderer._kept_background`), whatever the
-            source; None for none. Needs :func:`paste_region`'s ``detail``.
+            pixels are right: :meth:`renderer.render.FrameRenderer._kept_background`) when the source is
+            another frame; None for none (a source that is the painted frame itself holds that band in
+            ``fine`` and ``band``). Needs :func:`paste_region`'s ``detail``.
     """
 
     source: torch.Tensor

@@ -298,7 +298,8 @@ class FrameRenderer:
             )
         inside = inside.float()
         if self.detail:  # the footage's band of skin detail too where the surface moved rigidly
-            moved = self._band(moved, inside, (rows, cols), geo, own_geo, vertices_cam, own_cam, source)
+            own = (own_geo, own_cam, source[0] is frame)
+            moved = self._band(moved, inside, (rows, cols), geo, vertices_cam, source, own)
         final = crop.to(inside).clone()  # outside the window the crop itself (its paste weight is 0)
         final[..., rows, cols] = inside
         # where a bank entry's interior may go, and the lips its colours follow: found once per frame
@@ -415,19 +416,19 @@ class FrameRenderer:
         inside: torch.Tensor,
         window: tuple[slice, slice],
         geo: FrameGeometry,
-        own_geo: FrameGeometry,
         vertices_cam: np.ndarray,
-        own_cam: np.ndarray,
         source: tuple[np.ndarray, int, np.ndarray],
+        own: tuple[FrameGeometry, np.ndarray, bool],
     ) -> MovedDetail:
         """``moved`` with the band of detail finer than :data:`BAND_SIGMA` crop pixels taken from the
         source where the surface moved rigidly (:data:`STRAIN_LIMIT`), and from the painted frame's own
-        pixels in the band off the mesh that the networks paint (:meth:`_kept_background`; the footage
-        frame's geometry ``own_geo`` / ``own_cam``: a detail source from another frame changes the surface's
-        detail, not what lies around it); ``inside`` ``(1, C, h, w)`` is the networks' render over
-        ``window``."""
+        pixels in the band off the mesh that the networks paint (:meth:`_kept_background`), whatever the
+        source: a detail source from another frame changes the surface's detail, not what lies around it.
+        ``own = (geometry, camera-frame vertices, is the source)`` of the painted footage frame; ``inside``
+        ``(1, C, h, w)`` is the networks' render over ``window``."""
         rows, cols = window
         tri, bary = geo.triangle_id[rows, cols], geo.barycentric[rows, cols]
+        own_geo, own_cam, own_is_source = own
 
         def rigid_pixels(cam: np.ndarray) -> torch.Tensor:
             rigid = torch.from_numpy(rigidity(vertices_cam, cam, self._edges, STRAIN_LIMIT))
@@ -437,19 +438,31 @@ class FrameRenderer:
         band = torch.zeros_like(moved.fine)
         band[rows, cols] = moved.fine[rows, cols] * rigid_px
         background = (tri < 0) & (own_geo.triangle_id[rows, cols] < 0)
-        own_rigid = rigid_px if own_cam is source[2] else rigid_pixels(own_cam)
-        kept = torch.zeros_like(moved.fine)
-        kept[rows, cols] = self._kept_background(background, tri >= 0, own_rigid)
+        kept = self._kept_background(
+            background, tri >= 0, rigid_px if own_is_source else rigid_pixels(own_cam)
+        )
         # fade the band out within about a crop pixel of the border of what the source shows (the
         # silhouette, an occlusion; not the mouth interior, which has its own pixels): a source point there
         # may sit on an edge of the source frame, whose moved detail drew a dotted line along the jaw
-        shown = (moved.fine[rows, cols] > 0) | (kept[rows, cols] > 0) | (geo.mouth[0, 0, rows, cols] > 0)
+        shown = (moved.fine[rows, cols] > 0) | (kept > 0) | (geo.mouth[0, 0, rows, cols] > 0)
         fade = ((smooth(shown[None, None].float(), 1.0)[0, 0] - 0.5) * 2).clamp(0, 1)
-        band[rows, cols] *= fade
-        kept[rows, cols] *= fade
         render_band = torch.zeros(inside.shape[1], *band.shape)
         render_band[:, rows, cols] = (inside - smooth(inside, BAND_SIGMA))[0] * 255
-        return replace(moved, band=band, render_band=render_band, kept=kept)
+        if own_is_source:  # the kept band is the source's too: its pixels there are the pixels themselves,
+            # so a frame pixel on the silhouette reads one source point between the surface's and its own
+            fine, positions = moved.fine.clone(), moved.positions.clone()
+            fine[rows, cols] = torch.where(background, kept, fine[rows, cols])
+            band[rows, cols] = torch.where(background, kept, band[rows, cols]) * fade
+            size, side = self.preset.crop, float(moved.source_box[2])
+            centres = (torch.arange(size, dtype=torch.float32) + 0.5) * (side / size)
+            origin = torch.as_tensor(moved.source_box[:2] - side / 2, dtype=torch.float32)
+            pixels = torch.stack(torch.meshgrid(centres, centres, indexing="xy"), -1)[rows, cols] + origin
+            positions[rows, cols] = torch.where(background[..., None], pixels, positions[rows, cols])
+            return replace(moved, fine=fine, band=band, positions=positions, render_band=render_band)
+        band[rows, cols] *= fade
+        kept_map = torch.zeros_like(moved.fine)
+        kept_map[rows, cols] = kept * fade
+        return replace(moved, band=band, render_band=render_band, kept=kept_map)
 
     def _kept_background(
         self, background: torch.Tensor, surface: torch.Tensor, rigid_px: torch.Tensor

@@ -11,7 +11,9 @@ frame) and in
   sharpness ratios are pooled: the high-frequency (Laplacian) energy of all evaluated frames over the real
   frames' (1.0 = as much fine detail as the footage); ``psnr_mouth_open``: the mouth box's PSNR over the
   frames whose real mouth is open (inner-lip gap above :data:`OPEN` of the training part's range), where
-  the mouth interior shows:
+  the mouth interior shows; ``hf_in_place``: the correlation of the finest detail with the real frame's,
+  pooled (:func:`nvp.image_metrics.detail_in_place`: is the detail the ratios count the footage's own, in
+  place, or specks and another frame's stubble?):
 
 | variant | geometry | fine detail |
 |---|---|---|
@@ -126,6 +128,8 @@ def evaluate(
     from nvp.app.evaluate import detail_sources
     from nvp.face_model import default_face_model
     from nvp.image_metrics import (
+        detail_in_place,
+        high_frequency_agreement,
         high_frequency_energy,
         laplacian_energy,
         masked_psnr,
@@ -182,7 +186,7 @@ def evaluate(
     weights = model.mouth_weights()
     lips = model.landmark_groups["lips_outer"]
     rows: dict[str, list[dict]] = {k: [] for k in VARIANTS}
-    energies: dict[str, list[tuple[float, float]]] = {k: [] for k in ("real", *VARIANTS)}
+    energies: dict[str, list[tuple[float, float, float]]] = {k: [] for k in ("real", *VARIANTS)}
     crops: dict[int, list[np.ndarray]] = {}
     gap = model.inner_lip_gap(seq.identity, seq.expression)
     picks = {int(test[np.argmax(gap[test])]), int(test[np.argmin(gap[test])]), int(test[len(test) // 2])}
@@ -226,9 +230,9 @@ def evaluate(
             y0, y1, x0, x1 = box
             in_box = np.zeros(painted.shape, bool)
             in_box[y0:y1, x0:x1] = True
-            energies["real"].append((high_frequency_energy(real, box), laplacian_energy(real, box)))
-            for k, img in made.items():
-                energies[k].append((high_frequency_energy(img, box), laplacian_energy(img, box)))
+            for k, img in {"real": real, **made}.items():
+                energy = high_frequency_energy(img, box), laplacian_energy(img, box)
+                energies[k].append((*energy, high_frequency_agreement(img, real, box)))
                 rows[k].append(
                     {
                         "psnr_frame": psnr(img, real),
@@ -248,14 +252,17 @@ def evaluate(
         "open_frames": int(np.isfinite([r["psnr_mouth_open"] for r in rows["render"]]).sum()),
         **{k: whole[k] for k in ("init", "steps", "train_minutes", "psnr_full", "psnr_crop") if k in whole},
     }
-    real_energy = np.array(energies["real"]).reshape(-1, 2).sum(0)
+    real_energy = np.array(energies["real"]).reshape(-1, 3)
     for k in VARIANTS:
         keys = rows[k][0].keys() if rows[k] else ()
         result[k] = {m: float(np.nanmean([r[m] for r in rows[k]])) for m in keys}
         # sharpness pooled over the frames (energy kept / the footage's): a mean of per-frame ratios is
-        # pulled up by frames whose detail source is sharper than the frame itself (motion blur varies)
-        fake_energy = np.array(energies[k]).reshape(-1, 2).sum(0)
-        result[k]["hf_ratio"], result[k]["laplacian_ratio"] = (fake_energy / real_energy).tolist()
+        # pulled up by frames whose detail source is sharper than the frame itself (motion blur varies);
+        # and how much of that detail is the footage's own, in place (specks count in the ratios too)
+        fake_energy = np.array(energies[k]).reshape(-1, 3)
+        ratios = fake_energy[:, :2].sum(0) / real_energy[:, :2].sum(0)
+        result[k]["hf_ratio"], result[k]["laplacian_ratio"] = ratios.tolist()
+        result[k]["hf_in_place"] = detail_in_place(fake_energy[:, 2], fake_energy[:, 0], real_energy[:, 0])
     _save_crops(crops, out / f"crops_{video.stem}.png")
     return result
 

@@ -7,6 +7,8 @@ import pytest
 
 from nvp.image_metrics import (
     border_band,
+    detail_in_place,
+    high_frequency_agreement,
     high_frequency_energy,
     laplacian_energy,
     masked_psnr,
@@ -80,3 +82,27 @@ def test_seam_ratio_is_one_without_a_seam_and_grows_with_one():
     seam[16:48, 16:48] += 30  # the painted square is brighter: a visible edge at its border
     assert seam_gradient_ratio(seam, real, weight) > 2.0
     assert np.isnan(seam_gradient_ratio(real, real, np.zeros_like(weight)))
+
+
+def test_detail_in_place_tells_the_footage_own_detail_from_specks_and_misplaced_detail():
+    """The energy ratio counts any fine detail; its correlation with the real frame's says whether it is
+    the footage's, in place: 1 for the frame itself, high for a blurred copy (less of the same detail),
+    about 0 for grain or the same texture moved by two pixels."""
+    import cv2
+
+    real = textured(size=96)
+    box = (16, 80, 16, 80)
+
+    def in_place(fake: np.ndarray) -> float:
+        e = [high_frequency_energy(fake, box)], [high_frequency_energy(real, box)]
+        return detail_in_place(np.array([high_frequency_agreement(fake, real, box)]), *map(np.array, e))
+
+    blurred = cv2.GaussianBlur(real, (3, 3), 0.8)
+    grainy = np.clip(blurred + np.random.default_rng(3).normal(0, 30, real.shape), 0, 255).astype(np.uint8)
+    assert in_place(real) == pytest.approx(1.0)
+    assert in_place(blurred) > 0.6  # 0.69: little detail (energy ratio 0.06), all of it in place
+    assert abs(in_place(np.roll(real, 2, axis=1))) < 0.3  # all the detail, two pixels off
+    # grain on the blurred copy: six times the energy (0.39), a third of the agreement (0.26)
+    assert high_frequency_energy(grainy, box) > 5 * high_frequency_energy(blurred, box)
+    assert in_place(grainy) < 0.5 * in_place(blurred)
+    assert np.isnan(detail_in_place(np.zeros(1), np.zeros(1), np.zeros(1)))

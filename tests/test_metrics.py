@@ -194,10 +194,12 @@ def test_eval_takes_each_held_out_frames_detail_from_another_frame_a_second_away
 def test_eval_mouth_box_summary_pools_detail_and_skips_frames_without_a_face():
     from nvp.app.evaluate import mouth_box_summary
 
-    real = np.array([[np.inf, 4.0, 2.0], [np.inf, 16.0, 4.0], [np.nan] * 3])
-    made = np.array([[30.0, 2.0, 1.0], [np.inf, 10.0, 3.0], [np.nan] * 3])
+    real = np.array([[np.inf, 4.0, 2.0, 4.0], [np.inf, 16.0, 4.0, 16.0], [np.nan] * 4])
+    made = np.array([[30.0, 2.0, 1.0, 1.0], [np.inf, 10.0, 3.0, 9.0], [np.nan] * 4])
     out = mouth_box_summary(made, real)
     assert out["psnr_mouth"] == 30.0  # identical frames (inf) and faceless ones left out of the mean
     assert out["hf_ratio_mouth"] == pytest.approx(12 / 20)  # pooled, not the mean of 0.5 and 0.625
     assert out["laplacian_ratio_mouth"] == pytest.approx(4 / 6)
+    assert out["hf_in_place_mouth"] == pytest.approx(10 / np.sqrt(12 * 20))
+    assert mouth_box_summary(real, real)["hf_in_place_mouth"] == pytest.approx(1.0)
     assert np.isnan(mouth_box_summary(made[2:], real[2:])["hf_ratio_mouth"])

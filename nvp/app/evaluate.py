@@ -14,9 +14,11 @@ frame's own detail back onto its re-creation would compare it with itself.
 Metrics per frame and summarised: PSNR / SSIM on the full frame and on the stabilised face crop; in a box
 around the real frame's lips (grown by 60 % of the mouth width) PSNR and the fine-detail ratios
 (high-frequency and Laplacian energy over the real frames', pooled over the frames: where nvp paints, is it
-as detailed as the footage?); mediapipe run on real and generated frames: lip landmark distance /
-interocular distance (the paper's metric), lip-closure precision / recall / F1 (inner-lip gap below the real
-video's closed level), the audio-visual offset (cross-correlation of mouth opening, frames; 0 is perfect),
+as detailed as the footage?) and the correlation of its finest detail with the real frame's (is that detail
+the footage's, in place, or specks and misplaced stubble?); mediapipe run on real and generated frames: lip
+landmark distance / interocular distance (the paper's metric), lip-closure precision / recall / F1
+(inner-lip gap below the real video's closed level), the audio-visual offset (cross-correlation of mouth
+opening, frames; 0 is perfect),
 mouth-landmark jitter relative to the real video, and lip-sync behaviour measured on generated and real
 frames alike (``*_real`` is the target): the bilabial closure rate (frames where the held-out audio says p,
 b or m with the mouth closed from 0.16 s before; ratio to the real rate), the opening range (p95 of the gap
@@ -137,24 +139,26 @@ def _lip_metrics(real: np.ndarray, gen: np.ndarray, found: np.ndarray, groups: d
 
 
 def mouth_box_summary(made: np.ndarray, real: np.ndarray) -> dict[str, float]:
-    """Summary of per-frame mouth-box measurements ``(N, 3)`` (PSNR against the real frame, high-frequency
-    and Laplacian energy; NaN rows where the real frame shows no face) of a re-creation and of the real
-    frames: mean PSNR, and the fine-detail energies pooled over the frames as ratios to the real ones
-    (1.0 = as much fine detail as the footage; a mean of per-frame ratios would be pulled up by frames
-    whose detail source is sharper than the frame)."""
+    """Summary of per-frame mouth-box measurements ``(N, 4)`` (PSNR against the real frame, high-frequency
+    and Laplacian energy, high-frequency agreement with the real frame; NaN rows where the real frame shows
+    no face) of a re-creation and of the real frames: mean PSNR, the fine-detail energies pooled over the
+    frames as ratios to the real ones (1.0 = as much fine detail as the footage; a mean of per-frame ratios
+    would be pulled up by frames whose detail source is sharper than the frame), and how much of that detail
+    is the footage's, in place (:func:`nvp.image_metrics.detail_in_place`; a ratio counts specks and
+    misplaced stubble as detail too)."""
+    from nvp.image_metrics import detail_in_place
+
     ok = np.isfinite(made[:, 1]) & np.isfinite(real[:, 1])  # measured (PSNR may be inf: identical)
     if not ok.any():
-        return {
-            "psnr_mouth": float("nan"),
-            "hf_ratio_mouth": float("nan"),
-            "laplacian_ratio_mouth": float("nan"),
-        }
+        keys = ("psnr_mouth", "hf_ratio_mouth", "laplacian_ratio_mouth", "hf_in_place_mouth")
+        return dict.fromkeys(keys, float("nan"))
     fin = ok & np.isfinite(made[:, 0])
-    energy, ref = made[ok, 1:].sum(0), real[ok, 1:].sum(0)
+    energy, ref = made[ok, 1:3].sum(0), real[ok, 1:3].sum(0)
     return {
         "psnr_mouth": float(np.mean(made[fin, 0])) if fin.any() else float("inf"),
         "hf_ratio_mouth": float(energy[0] / ref[0]) if ref[0] > 0 else float("nan"),
         "laplacian_ratio_mouth": float(energy[1] / ref[1]) if ref[1] > 0 else float("nan"),
+        "hf_in_place_mouth": detail_in_place(made[ok, 3], made[ok, 1], real[ok, 1]),
     }
 
 
@@ -191,7 +195,7 @@ def evaluate_video(
     from nvp.app.fit import FitConfig, fit
     from nvp.audio2exp import default_audio2exp
     from nvp.face_model import default_face_model
-    from nvp.image_metrics import high_frequency_energy, laplacian_energy, mouth_box
+    from nvp.image_metrics import high_frequency_agreement, high_frequency_energy, laplacian_energy, mouth_box
     from nvp.media import VideoWriter, audio_rate, frames_at, iter_frames, probe_video, read_audio
     from nvp.metrics import psnr, ssim
     from nvp.person import PersonStyle, predict_expressions
@@ -252,7 +256,9 @@ def evaluate_video(
     kinds = ("real", "visual", "audio")
     marks = {k: np.full((n_test, 478, 2), np.nan) for k in kinds}
     img = {k: np.full((n_test, 4), np.nan) for k in ("visual", "audio")}  # psnr, ssim full; psnr, ssim crop
-    mouth = {k: np.full((n_test, 3), np.nan) for k in kinds}  # mouth box: psnr, fine-detail energies
+    mouth = {
+        k: np.full((n_test, 4), np.nan) for k in kinds
+    }  # mouth box: psnr, fine detail (energies, agreement)
     lips = model.landmark_groups["lips_outer"]
     detectors = {k: LandmarkDetector() for k in kinds}
     side = None
@@ -301,6 +307,7 @@ def evaluate_video(
                             psnr(frame[y0:y1, x0:x1], m[y0:y1, x0:x1]),
                             high_frequency_energy(m, box),
                             laplacian_energy(m, box),
+                            high_frequency_agreement(m, frame, box),
                         ]
                 if side is not None:
                     side.write(np.hstack([frame, made["visual"], made["audio"]]))
