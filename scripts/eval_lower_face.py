@@ -233,6 +233,7 @@ def evaluate(
             for k, img in {"real": real, **made}.items():
                 energy = high_frequency_energy(img, box), laplacian_energy(img, box)
                 energies[k].append((*energy, high_frequency_agreement(img, real, box)))
+            for k, img in made.items():
                 rows[k].append(
                     {
                         "psnr_frame": psnr(img, real),
