@@ -234,12 +234,12 @@ def paste_region(
             "valid": valid,
             "fine": valid * paint,
             "band": moved.band[None, None].float(),
-            "kept": moved.kept[None, None].float() if kept else torch.zeros(1, 1, s, s),
             "render_band": moved.render_band[None].float(),
         }
-        if kept:  # inside the painted part the frame's own detail finer than the crop; its crop's low-pass
+        if kept:  # the frame's own band; inside the painted part its detail finer than the crop; its low-pass
             named |= {
-                "kept_fine": named["kept"] * paint,
+                "kept": moved.kept[None, None].float(),
+                "kept_fine": moved.kept[None, None].float() * paint,
                 "own_low": smooth(detail[0][None].float(), moved.sigma),
             }
         maps += list(named.values())
@@ -256,7 +256,7 @@ def paste_region(
             zip(named, torch.split(sampled[0, n_maps:], [m.shape[1] for m in named.values()]), strict=True)
         )
         # only over the rows and columns where any detail is added (the painted lower face, not the box)
-        on = torch.cat([got["fine"], got["band"], got["kept"]]).amax(0) > 0
+        on = torch.cat([got[name] for name in ("fine", "band", "kept") if name in got]).amax(0) > 0
         rows, cols = torch.nonzero(on.any(1))[:, 0], torch.nonzero(on.any(0))[:, 0]
         if len(rows):
             r, k = slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1)
