@@ -225,7 +225,9 @@ class FrameRenderer:
         With ``self.detail`` on, the painted lower face also gets the fine detail (stubble, pores, lip
         texture) of a source frame moved with the surface onto the new geometry (see
         :mod:`renderer.warp`): ``source = (frame, index, tracked_cam)``, by default this very frame under
-        ``original_cam`` (or ``vertices_cam`` when there is none). The mouth interior gets none.
+        ``original_cam`` (or ``vertices_cam`` when there is none). The mouth interior gets none; the band
+        around the mesh that the networks paint keeps this footage frame's own pixels whatever the source
+        (:meth:`_kept_background`), as a dub of it would.
 
         With a mouth bank (``self.mouths``), where the new geometry shows the mouth interior the interior
         of bank entry ``mouth`` is pasted, moved onto it (default: the best entry for this frame alone,
