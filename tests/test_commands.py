@@ -112,6 +112,7 @@ def test_eval_happy_path(tmp_path):
     r = json.loads((out / "eval.json").read_text())
     assert r["frames"]["test"] == 25 and np.isfinite(r["visual"]["psnr_full"])
     assert all(np.isfinite(r[k]["hf_ratio_mouth"]) for k in ("visual", "audio"))  # where nvp paints
+    assert all(-1 <= r[k]["hf_in_place_mouth"] <= 1 for k in ("visual", "audio"))  # a correlation
     assert (out / "eval.md").exists() and (out / "eval.png").exists()
     assert verify(out / "side_by_side.mp4").marked
     before = (out / "person" / "bundle.json").stat().st_mtime
