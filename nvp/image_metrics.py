@@ -53,14 +53,24 @@ def _gray(img: np.ndarray) -> np.ndarray:
     return img.astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)
 
 
+def _gray_around(img: np.ndarray, box: Box, margin: int) -> tuple[np.ndarray, tuple[slice, slice]]:
+    """Grey levels of ``box`` grown by ``margin`` pixels (within the image) and the slices of ``box`` in
+    them: a filter of that reach sees there what it sees over the whole image (at the image's own edge
+    the crop's edge is the image's), without converting and filtering the whole frame."""
+    y0, y1, x0, x1 = box
+    h, w = img.shape[:2]
+    gy0, gx0 = max(y0 - margin, 0), max(x0 - margin, 0)
+    grey = _gray(img[gy0 : min(y1 + margin, h), gx0 : min(x1 + margin, w)])
+    return grey, (slice(y0 - gy0, y1 - gy0), slice(x0 - gx0, x1 - gx0))
+
+
 def high_frequency(img: np.ndarray, box: Box) -> np.ndarray:
     """``(h, w)`` float32: the image minus its 5×5 Gaussian blur (grey levels) inside ``box``, the finest
-    detail (stubble, pores, teeth edges); blurred over the whole image, so the box's edge is not one."""
+    detail (stubble, pores, teeth edges); blurred as over the whole image, so the box's edge is not one."""
     import cv2
 
-    g = _gray(img)
-    y0, y1, x0, x1 = box
-    return (g - cv2.GaussianBlur(g, (5, 5), 0))[y0:y1, x0:x1]
+    g, inner = _gray_around(img, box, 2)
+    return (g - cv2.GaussianBlur(g, (5, 5), 0))[inner]
 
 
 def high_frequency_energy(img: np.ndarray, box: Box) -> float:
@@ -88,9 +98,8 @@ def laplacian_energy(img: np.ndarray, box: Box) -> float:
     """Mean absolute Laplacian (3×3, grey levels) inside ``box``."""
     import cv2
 
-    lap = cv2.Laplacian(_gray(img), cv2.CV_32F, ksize=1)
-    y0, y1, x0, x1 = box
-    return float(np.mean(np.abs(lap[y0:y1, x0:x1])))
+    g, inner = _gray_around(img, box, 1)
+    return float(np.mean(np.abs(cv2.Laplacian(g, cv2.CV_32F, ksize=1)[inner])))
 
 
 def border_band(weight: np.ndarray, width: int = 3) -> np.ndarray:

@@ -256,9 +256,8 @@ def evaluate_video(
     kinds = ("real", "visual", "audio")
     marks = {k: np.full((n_test, 478, 2), np.nan) for k in kinds}
     img = {k: np.full((n_test, 4), np.nan) for k in ("visual", "audio")}  # psnr, ssim full; psnr, ssim crop
-    mouth = {
-        k: np.full((n_test, 4), np.nan) for k in kinds
-    }  # mouth box: psnr, fine detail (energies, agreement)
+    # mouth box: PSNR, fine detail (high-frequency and Laplacian energy, agreement with the real frame)
+    mouth = {k: np.full((n_test, 4), np.nan) for k in kinds}
     lips = model.landmark_groups["lips_outer"]
     detectors = {k: LandmarkDetector() for k in kinds}
     side = None
