@@ -94,6 +94,31 @@ def detail_in_place(agreement: np.ndarray, energy: np.ndarray, real_energy: np.n
     return float(np.sum(agreement) / norm) if norm > 0 else float("nan")
 
 
+def mouth_regions(outer: np.ndarray, inner: np.ndarray, box: Box) -> dict[str, np.ndarray]:
+    """``box`` ``(h, w)`` split by lip landmarks (``(L, 2)`` x, y pixels; ordered loops): ``interior``
+    inside the inner contour (teeth, tongue), ``lips`` between the two contours, ``skin`` the rest — where
+    fine detail is lost differs (the lips change shape with every word, the skin around them mostly moves)."""
+    import cv2
+
+    y0, y1, x0, x1 = box
+
+    def inside(loop: np.ndarray) -> np.ndarray:
+        out = np.zeros((y1 - y0, x1 - x0), np.uint8)
+        cv2.fillPoly(out, [np.round(loop[:, :2] - [x0, y0]).astype(np.int32)], 1)
+        return out.astype(bool)
+
+    interior, mouth = inside(inner), inside(outer)
+    return {"interior": interior, "lips": mouth & ~interior, "skin": ~mouth}
+
+
+def high_frequency_sums(img: np.ndarray, box: Box, regions: dict[str, np.ndarray]) -> dict[str, float]:
+    """Sum of squared :func:`high_frequency` over each of ``regions`` (``(h, w)`` bool over ``box``, as
+    :func:`mouth_regions`): pooled over frames, a fake's sums over the real frames' are its fine detail kept
+    per region."""
+    hf = high_frequency(img, box) ** 2
+    return {name: float(hf[mask].sum()) for name, mask in regions.items()}
+
+
 def laplacian_energy(img: np.ndarray, box: Box) -> float:
     """Mean absolute Laplacian (3×3, grey levels) inside ``box``."""
     import cv2

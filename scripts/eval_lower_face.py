@@ -13,7 +13,9 @@ frame) and in
   frames whose real mouth is open (inner-lip gap above :data:`OPEN` of the training part's range), where
   the mouth interior shows; ``hf_in_place``: the correlation of the finest detail with the real frame's,
   pooled (:func:`nvp.image_metrics.detail_in_place`: is the detail the ratios count the footage's own, in
-  place, or specks and another frame's stubble?):
+  place, or specks and another frame's stubble?); ``hf_interior`` / ``hf_lips`` / ``hf_skin``: the
+  high-frequency ratio inside the real frame's inner lips, between its inner and outer lips, and on the rest
+  of the box:
 
 | variant | geometry | fine detail |
 |---|---|---|
@@ -58,6 +60,9 @@ VARIANTS = (
     "retrieval",
 )
 OPTIMISTIC = {"detail_same", "dub"}
+REGIONS = ("interior", "lips", "skin")
+"""The mouth box's parts whose high-frequency ratio is reported too (``hf_interior``, ``hf_lips``,
+``hf_skin``; :func:`nvp.image_metrics.mouth_regions`)."""
 OPEN = 0.3
 
 
@@ -131,10 +136,12 @@ def evaluate(
         detail_in_place,
         high_frequency_agreement,
         high_frequency_energy,
+        high_frequency_sums,
         laplacian_energy,
         masked_psnr,
         masked_ssim,
         mouth_box,
+        mouth_regions,
         seam_gradient_ratio,
     )
     from nvp.media import frames_at
@@ -184,9 +191,10 @@ def evaluate(
     sources = dict(zip(held.tolist(), detail_sources(seq, held, count=len(held)).tolist(), strict=True))
     train_idx = np.flatnonzero(seq.valid[:split])
     weights = model.mouth_weights()
-    lips = model.landmark_groups["lips_outer"]
+    lips, inner_lips = model.landmark_groups["lips_outer"], model.landmark_groups["lips_inner"]
     rows: dict[str, list[dict]] = {k: [] for k in VARIANTS}
     energies: dict[str, list[tuple[float, float, float]]] = {k: [] for k in ("real", *VARIANTS)}
+    region_energies: dict[str, list[dict[str, float]]] = {k: [] for k in ("real", *VARIANTS)}
     crops: dict[int, list[np.ndarray]] = {}
     gap = model.inner_lip_gap(seq.identity, seq.expression)
     picks = {int(test[np.argmax(gap[test])]), int(test[np.argmin(gap[test])]), int(test[len(test) // 2])}
@@ -230,9 +238,11 @@ def evaluate(
             y0, y1, x0, x1 = box
             in_box = np.zeros(painted.shape, bool)
             in_box[y0:y1, x0:x1] = True
+            regions = mouth_regions(found.points[lips, :2], found.points[inner_lips, :2], box)
             for k, img in {"real": real, **made}.items():
                 energy = high_frequency_energy(img, box), laplacian_energy(img, box)
                 energies[k].append((*energy, high_frequency_agreement(img, real, box)))
+                region_energies[k].append(high_frequency_sums(img, box, regions))
             for k, img in made.items():
                 rows[k].append(
                     {
@@ -264,6 +274,10 @@ def evaluate(
         ratios = fake_energy[:, :2].sum(0) / real_energy[:, :2].sum(0)
         result[k]["hf_ratio"], result[k]["laplacian_ratio"] = ratios.tolist()
         result[k]["hf_in_place"] = detail_in_place(fake_energy[:, 2], fake_energy[:, 0], real_energy[:, 0])
+        for name in REGIONS:  # where in the box the detail is lost (pooled as above)
+            kept = sum(e[name] for e in region_energies[k])
+            real_sum = sum(e[name] for e in region_energies["real"])
+            result[k][f"hf_{name}"] = kept / real_sum if real_sum > 0 else float("nan")
     _save_crops(crops, out / f"crops_{video.stem}.png")
     return result
 

@@ -113,6 +113,7 @@ def test_eval_happy_path(tmp_path):
     assert r["frames"]["test"] == 25 and np.isfinite(r["visual"]["psnr_full"])
     assert all(np.isfinite(r[k]["hf_ratio_mouth"]) for k in ("visual", "audio"))  # where nvp paints
     assert all(-1 <= r[k]["hf_in_place_mouth"] <= 1 for k in ("visual", "audio"))  # a correlation
+    assert all(r[k]["hf_ratio_lips"] >= 0 for k in ("visual", "audio"))  # where in the box it is lost
     assert (out / "eval.md").exists() and (out / "eval.png").exists()
     assert verify(out / "side_by_side.mp4").marked
     before = (out / "person" / "bundle.json").stat().st_mtime

@@ -10,10 +10,12 @@ from nvp.image_metrics import (
     detail_in_place,
     high_frequency_agreement,
     high_frequency_energy,
+    high_frequency_sums,
     laplacian_energy,
     masked_psnr,
     masked_ssim,
     mouth_box,
+    mouth_regions,
     seam_gradient_ratio,
 )
 
@@ -106,3 +108,28 @@ def test_detail_in_place_tells_the_footage_own_detail_from_specks_and_misplaced_
     assert high_frequency_energy(grainy, box) > 5 * high_frequency_energy(blurred, box)
     assert in_place(grainy) < 0.5 * in_place(blurred)
     assert np.isnan(detail_in_place(np.zeros(1), np.zeros(1), np.zeros(1)))
+
+
+def test_mouth_regions_split_the_box_and_the_detail_lost_is_found_where_it_was_lost():
+    import cv2
+
+    outer = np.array([[20, 32], [32, 24], [44, 32], [32, 42]], float)  # a diamond of lips
+    inner = np.array([[26, 32], [32, 30], [38, 32], [32, 35]], float)
+    box = (10, 54, 10, 54)
+    regions = mouth_regions(outer, inner, box)
+    assert {k: v.shape for k, v in regions.items()} == {k: (44, 44) for k in ("interior", "lips", "skin")}
+    total = sum(v.astype(int) for v in regions.values())
+    assert (total == 1).all()  # every pixel of the box in exactly one
+    assert regions["interior"][32 - 10, 32 - 10] and regions["lips"][27 - 10, 32 - 10]
+    assert regions["skin"][0, 0] and 0 < regions["interior"].sum() < regions["lips"].sum()
+    real = textured(3)
+    soft = real.copy()  # the lips blurred, interior and skin kept
+    lips = np.zeros(real.shape[:2], bool)
+    lips[10:54, 10:54] = regions["lips"]
+    soft[lips] = cv2.GaussianBlur(real, (7, 7), 2.0)[lips]
+    kept = high_frequency_sums(soft, box, regions)
+    truth = high_frequency_sums(real, box, regions)
+    assert kept["lips"] < 0.1 * truth["lips"]
+    # the 5×5 filter reaches 2 px into the neighbours only
+    assert kept["skin"] > 0.95 * truth["skin"] and kept["interior"] > 0.9 * truth["interior"]
+    assert sum(truth.values()) == pytest.approx(high_frequency_energy(real, box) * 44 * 44, rel=1e-5)

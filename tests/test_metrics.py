@@ -194,9 +194,16 @@ def test_eval_takes_each_held_out_frames_detail_from_another_frame_a_second_away
 def test_eval_mouth_box_summary_pools_detail_and_skips_frames_without_a_face():
     from nvp.app.evaluate import mouth_box_summary
 
-    real = np.array([[np.inf, 4.0, 2.0, 4.0], [np.inf, 16.0, 4.0, 16.0], [np.nan] * 4])
-    made = np.array([[30.0, 2.0, 1.0, 1.0], [np.inf, 10.0, 3.0, 9.0], [np.nan] * 4])
+    # PSNR, high-frequency and Laplacian energy, agreement, high-frequency sums of interior, lips, skin
+    real = np.array(
+        [[np.inf, 4.0, 2.0, 4.0, 1.0, 4.0, 8.0], [np.inf, 16.0, 4.0, 16.0, 3.0, 4.0, 30.0], [np.nan] * 7]
+    )
+    made = np.array(
+        [[30.0, 2.0, 1.0, 1.0, 1.0, 1.0, 6.0], [np.inf, 10.0, 3.0, 9.0, 3.0, 1.0, 20.0], [np.nan] * 7]
+    )
     out = mouth_box_summary(made, real)
+    # per region, pooled too: the interior kept, the lips a quarter, the skin two thirds
+    assert [out[f"hf_ratio_{r}"] for r in ("interior", "lips", "skin")] == pytest.approx([1.0, 0.25, 26 / 38])
     assert out["psnr_mouth"] == 30.0  # identical frames (inf) and faceless ones left out of the mean
     assert out["hf_ratio_mouth"] == pytest.approx(12 / 20)  # pooled, not the mean of 0.5 and 0.625
     assert out["laplacian_ratio_mouth"] == pytest.approx(4 / 6)

@@ -138,27 +138,39 @@ def _lip_metrics(real: np.ndarray, gen: np.ndarray, found: np.ndarray, groups: d
     }
 
 
+MOUTH_REGIONS = ("interior", "lips", "skin")
+"""The parts of the mouth box whose fine detail :func:`mouth_box_summary` reports apart
+(:func:`nvp.image_metrics.mouth_regions`)."""
+
+
 def mouth_box_summary(made: np.ndarray, real: np.ndarray) -> dict[str, float]:
-    """Summary of per-frame mouth-box measurements ``(N, 4)`` (PSNR against the real frame, high-frequency
-    and Laplacian energy, high-frequency agreement with the real frame; NaN rows where the real frame shows
-    no face) of a re-creation and of the real frames: mean PSNR, the fine-detail energies pooled over the
-    frames as ratios to the real ones (1.0 = as much fine detail as the footage; a mean of per-frame ratios
-    would be pulled up by frames whose detail source is sharper than the frame), and how much of that detail
-    is the footage's, in place (:func:`nvp.image_metrics.detail_in_place`; a ratio counts specks and
-    misplaced stubble as detail too)."""
+    """Summary of per-frame mouth-box measurements ``(N, 7)`` (PSNR against the real frame, high-frequency
+    and Laplacian energy, high-frequency agreement with the real frame, the high-frequency sums over the
+    :data:`MOUTH_REGIONS`; NaN rows where the real frame shows no face) of a re-creation and of the real
+    frames: mean PSNR, the fine-detail energies pooled over the frames as ratios to the real ones (1.0 = as
+    much fine detail as the footage; a mean of per-frame ratios would be pulled up by frames whose detail
+    source is sharper than the frame), the same per region, and how much of that detail is the footage's, in
+    place (:func:`nvp.image_metrics.detail_in_place`; a ratio counts specks and misplaced stubble as detail
+    too)."""
     from nvp.image_metrics import detail_in_place
 
     ok = np.isfinite(made[:, 1]) & np.isfinite(real[:, 1])  # measured (PSNR may be inf: identical)
+    regions = [f"hf_ratio_{name}" for name in MOUTH_REGIONS]
     if not ok.any():
-        keys = ("psnr_mouth", "hf_ratio_mouth", "laplacian_ratio_mouth", "hf_in_place_mouth")
+        keys = ("psnr_mouth", "hf_ratio_mouth", "laplacian_ratio_mouth", "hf_in_place_mouth", *regions)
         return dict.fromkeys(keys, float("nan"))
     fin = ok & np.isfinite(made[:, 0])
     energy, ref = made[ok, 1:3].sum(0), real[ok, 1:3].sum(0)
+    kept, there = made[ok, 4:].sum(0), real[ok, 4:].sum(0)
     return {
         "psnr_mouth": float(np.mean(made[fin, 0])) if fin.any() else float("inf"),
         "hf_ratio_mouth": float(energy[0] / ref[0]) if ref[0] > 0 else float("nan"),
         "laplacian_ratio_mouth": float(energy[1] / ref[1]) if ref[1] > 0 else float("nan"),
         "hf_in_place_mouth": detail_in_place(made[ok, 3], made[ok, 1], real[ok, 1]),
+        **{
+            key: float(k / r) if r > 0 else float("nan")
+            for key, k, r in zip(regions, kept, there, strict=True)
+        },
     }
 
 
@@ -195,7 +207,14 @@ def evaluate_video(
     from nvp.app.fit import FitConfig, fit
     from nvp.audio2exp import default_audio2exp
     from nvp.face_model import default_face_model
-    from nvp.image_metrics import high_frequency_agreement, high_frequency_energy, laplacian_energy, mouth_box
+    from nvp.image_metrics import (
+        high_frequency_agreement,
+        high_frequency_energy,
+        high_frequency_sums,
+        laplacian_energy,
+        mouth_box,
+        mouth_regions,
+    )
     from nvp.media import VideoWriter, audio_rate, frames_at, iter_frames, probe_video, read_audio
     from nvp.metrics import psnr, ssim
     from nvp.person import PersonStyle, predict_expressions
@@ -257,8 +276,8 @@ def evaluate_video(
     marks = {k: np.full((n_test, 478, 2), np.nan) for k in kinds}
     img = {k: np.full((n_test, 4), np.nan) for k in ("visual", "audio")}  # psnr, ssim full; psnr, ssim crop
     # mouth box: PSNR, fine detail (high-frequency and Laplacian energy, agreement with the real frame)
-    mouth = {k: np.full((n_test, 4), np.nan) for k in kinds}
-    lips = model.landmark_groups["lips_outer"]
+    mouth = {k: np.full((n_test, 4 + len(MOUTH_REGIONS)), np.nan) for k in kinds}
+    lips, inner_lips = model.landmark_groups["lips_outer"], model.landmark_groups["lips_inner"]
     detectors = {k: LandmarkDetector() for k in kinds}
     side = None
     if cfg.side_by_side:
@@ -300,13 +319,16 @@ def evaluate_video(
                         marks[k][j] = d.points[:, :2]
                 if np.isfinite(marks["real"][j, 0, 0]):  # the mouth box of the real frame
                     box = mouth_box(marks["real"][j][lips], frame.shape[:2])
+                    regions = mouth_regions(marks["real"][j][lips], marks["real"][j][inner_lips], box)
                     y0, y1, x0, x1 = box
                     for k, m in {"real": frame, **made}.items():
+                        sums = high_frequency_sums(m, box, regions)
                         mouth[k][j] = [
                             psnr(frame[y0:y1, x0:x1], m[y0:y1, x0:x1]),
                             high_frequency_energy(m, box),
                             laplacian_energy(m, box),
                             high_frequency_agreement(m, frame, box),
+                            *(sums[name] for name in MOUTH_REGIONS),
                         ]
                 if side is not None:
                     side.write(np.hstack([frame, made["visual"], made["audio"]]))
