@@ -94,6 +94,10 @@ def detail_in_place(agreement: np.ndarray, energy: np.ndarray, real_energy: np.n
     return float(np.sum(agreement) / norm) if norm > 0 else float("nan")
 
 
+MOUTH_REGIONS = ("interior", "lips", "skin")
+"""The parts of a mouth box :func:`mouth_regions` returns, in the order reports list them."""
+
+
 def mouth_regions(outer: np.ndarray, inner: np.ndarray, box: Box) -> dict[str, np.ndarray]:
     """``box`` ``(h, w)`` split by lip landmarks (``(L, 2)`` x, y pixels; ordered loops): ``interior``
     inside the inner contour (teeth, tongue), ``lips`` between the two contours, ``skin`` the rest — where

@@ -60,9 +60,6 @@ VARIANTS = (
     "retrieval",
 )
 OPTIMISTIC = {"detail_same", "dub"}
-REGIONS = ("interior", "lips", "skin")
-"""The mouth box's parts whose high-frequency ratio is reported too (``hf_interior``, ``hf_lips``,
-``hf_skin``; :func:`nvp.image_metrics.mouth_regions`)."""
 OPEN = 0.3
 
 
@@ -133,6 +130,7 @@ def evaluate(
     from nvp.app.evaluate import detail_sources
     from nvp.face_model import default_face_model
     from nvp.image_metrics import (
+        MOUTH_REGIONS,
         detail_in_place,
         high_frequency_agreement,
         high_frequency_energy,
@@ -274,7 +272,7 @@ def evaluate(
         ratios = fake_energy[:, :2].sum(0) / real_energy[:, :2].sum(0)
         result[k]["hf_ratio"], result[k]["laplacian_ratio"] = ratios.tolist()
         result[k]["hf_in_place"] = detail_in_place(fake_energy[:, 2], fake_energy[:, 0], real_energy[:, 0])
-        for name in REGIONS:  # where in the box the detail is lost (pooled as above)
+        for name in MOUTH_REGIONS:  # where in the box the detail is lost (pooled as above)
             kept = sum(e[name] for e in region_energies[k])
             real_sum = sum(e[name] for e in region_energies["real"])
             result[k][f"hf_{name}"] = kept / real_sum if real_sum > 0 else float("nan")

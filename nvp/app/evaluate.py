@@ -138,21 +138,16 @@ def _lip_metrics(real: np.ndarray, gen: np.ndarray, found: np.ndarray, groups: d
     }
 
 
-MOUTH_REGIONS = ("interior", "lips", "skin")
-"""The parts of the mouth box whose fine detail :func:`mouth_box_summary` reports apart
-(:func:`nvp.image_metrics.mouth_regions`)."""
-
-
 def mouth_box_summary(made: np.ndarray, real: np.ndarray) -> dict[str, float]:
     """Summary of per-frame mouth-box measurements ``(N, 7)`` (PSNR against the real frame, high-frequency
-    and Laplacian energy, high-frequency agreement with the real frame, the high-frequency sums over the
-    :data:`MOUTH_REGIONS`; NaN rows where the real frame shows no face) of a re-creation and of the real
-    frames: mean PSNR, the fine-detail energies pooled over the frames as ratios to the real ones (1.0 = as
-    much fine detail as the footage; a mean of per-frame ratios would be pulled up by frames whose detail
-    source is sharper than the frame), the same per region, and how much of that detail is the footage's, in
-    place (:func:`nvp.image_metrics.detail_in_place`; a ratio counts specks and misplaced stubble as detail
-    too)."""
-    from nvp.image_metrics import detail_in_place
+    and Laplacian energy, high-frequency agreement with the real frame, the high-frequency sums over
+    :data:`nvp.image_metrics.MOUTH_REGIONS`; NaN rows where the real frame shows no face) of a re-creation
+    and of the real frames: mean PSNR, the fine-detail energies pooled over the frames as ratios to the real
+    ones (1.0 = as much fine detail as the footage; a mean of per-frame ratios would be pulled up by frames
+    whose detail source is sharper than the frame), the same per region, and how much of that detail is the
+    footage's, in place (:func:`nvp.image_metrics.detail_in_place`; a ratio counts specks and misplaced
+    stubble as detail too)."""
+    from nvp.image_metrics import MOUTH_REGIONS, detail_in_place
 
     ok = np.isfinite(made[:, 1]) & np.isfinite(real[:, 1])  # measured (PSNR may be inf: identical)
     regions = [f"hf_ratio_{name}" for name in MOUTH_REGIONS]
@@ -208,6 +203,7 @@ def evaluate_video(
     from nvp.audio2exp import default_audio2exp
     from nvp.face_model import default_face_model
     from nvp.image_metrics import (
+        MOUTH_REGIONS,
         high_frequency_agreement,
         high_frequency_energy,
         high_frequency_sums,
@@ -275,7 +271,8 @@ def evaluate_video(
     kinds = ("real", "visual", "audio")
     marks = {k: np.full((n_test, 478, 2), np.nan) for k in kinds}
     img = {k: np.full((n_test, 4), np.nan) for k in ("visual", "audio")}  # psnr, ssim full; psnr, ssim crop
-    # mouth box: PSNR, fine detail (high-frequency and Laplacian energy, agreement with the real frame)
+    # mouth box: PSNR, fine detail (high-frequency and Laplacian energy, agreement with the real frame,
+    # high-frequency sums inside the real frame's inner lips, on its lips and on the skin around them)
     mouth = {k: np.full((n_test, 4 + len(MOUTH_REGIONS)), np.nan) for k in kinds}
     lips, inner_lips = model.landmark_groups["lips_outer"], model.landmark_groups["lips_inner"]
     detectors = {k: LandmarkDetector() for k in kinds}
