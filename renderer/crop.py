@@ -236,9 +236,8 @@ def paste_region(
             "band": moved.band[None, None].float(),
             "render_band": moved.render_band[None].float(),
         }
-        if (
-            has_kept
-        ):  # the frame's own band; inside the painted part its detail finer than the crop; its low-pass
+        if has_kept:
+            # the frame's own band; inside the painted part its detail finer than the crop; its low-pass
             named |= {
                 "kept": moved.kept[None, None].float(),
                 "kept_fine": moved.kept[None, None].float() * paint,
@@ -271,9 +270,8 @@ def paste_region(
             source = sample_pixels(moved.source, pos, "bicubic")
             render_band = part["render_band"]
             detail = moved_detail(source, low[:c], low[c:], render_band, part["fine"], part["band"])
-            if (
-                has_kept
-            ):  # the frame's own band (its crop minus that crop's low-pass) and its detail finer than
+            if has_kept:
+                # the frame's own band (its crop minus that crop's low-pass) and its detail finer than
                 # the crop inside the painted part (outside it ``detail`` adds that already)
                 crop_res = sampled[0, c + 1 : 2 * c + 1, r, k]
                 own = (
