@@ -20,7 +20,7 @@ from kornia.filters import gaussian_blur2d
 from nvp.face_model import FaceModel
 from nvp.geometry import unposed
 from nvp.tracked import TrackedSequence
-from renderer.crop import MovedDetail, box_slices, cut, feather, paste_region, region_weight
+from renderer.crop import MovedDetail, box_slices, colour_match, cut, feather, paste_region, region_weight
 from renderer.data import (
     FrameGeometry,
     Rasterizer,
@@ -29,7 +29,7 @@ from renderer.data import (
     moved_source,
     sequence_boxes,
 )
-from renderer.masks import dilate
+from renderer.masks import box_blur, dilate, erode
 from renderer.mouths import light_costs
 from renderer.networks import fast_bf16, load_renderer
 from renderer.warp import mesh_edges, rigidity, sample_pixels, smooth, surface_points
@@ -104,11 +104,14 @@ class FaceRender:
         image: ``(3, h, w)`` float the frame there.
         box: ``(3,)`` the crop box relative to ``slices``.
         geo: the rasterized geometry; crop: ``(3, S, S)`` the footage crop in [0, 1].
-        render: ``(3, S, S)`` the networks' crop in [0, 1] (the crop itself outside their window).
+        render: ``(3, S, S)`` the networks' crop in [0, 1] (the crop itself outside their window), in the
+            footage frame's light (:func:`renderer.crop.colour_match`).
         paint: ``(1, 1, S, S)`` the painted lower face; moved: the detail moved onto it, if any.
         interior: with a mouth bank, the crop window around the mouth interior the geometry shows
             (:meth:`FrameRenderer._interior_window`; None when it shows none); lips: the rendered lips
-            there (:meth:`FrameRenderer._rendered_lips`), which the bank entries' colours follow.
+            there (:meth:`FrameRenderer._rendered_lips`, in the light the networks learned), which the bank
+            entries' colours follow; light: ``(gain, offset)`` ``(3, 1, 1)`` each that took the networks'
+            render into the frame's light, and takes a bank entry's interior there too.
     """
 
     frame: np.ndarray
@@ -124,6 +127,7 @@ class FaceRender:
     moved: MovedDetail | None = None
     interior: tuple[int, int, int, int] | None = None
     lips: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
+    light: tuple[torch.Tensor, torch.Tensor] | None = None
 
 
 class FrameRenderer:
@@ -299,6 +303,17 @@ class FrameRenderer:
                 source_in[None, ..., rows, cols].to(dev) if self.net.source_input else None,
             )
         inside = inside.float()
+        # the footage frame may show the face in other light than the frames the networks learned (a fade
+        # to white, a brighter take): their render of the face the frame keeps (the mesh above and around
+        # the painted part, whose geometry a dub leaves alone) says how, and the painted part follows
+        kept_face = (erode(geo.mask, 2) > 0.5) & (dilate(paint, 3) == 0)
+        gain, offset = colour_match(
+            inside[0].cpu(), crop[0, :, rows, cols], kept_face[0, 0, rows, cols], min_pixels=paint.shape[-1]
+        )
+        # on the mesh only: off it the compositing network paints from the footage around it, in its light
+        on_mesh = box_blur(geo.mask[..., rows, cols], 2).to(dev)
+        learned = inside
+        inside = (inside + on_mesh * (inside * (gain.to(dev) - 1) + offset.to(dev))).clamp(0, 1)
         if self.detail:  # the footage's band of skin detail too where the surface moved rigidly
             own = (own_geo, own_cam, source[0] is frame)
             moved = self._band(moved, inside, (rows, cols), geo, vertices_cam, source, own)
@@ -306,7 +321,11 @@ class FrameRenderer:
         final[..., rows, cols] = inside
         # where a bank entry's interior may go, and the lips its colours follow: found once per frame
         window = self._interior_window(geo) if self.mouths is not None else None
-        lips = self._rendered_lips(geo, final[0]) if window is not None else None
+        lips = None
+        if window is not None:
+            in_learned_light = final.clone()
+            in_learned_light[..., rows, cols] = learned
+            lips = self._rendered_lips(geo, in_learned_light[0])
         return FaceRender(
             frame,
             index,
@@ -321,6 +340,7 @@ class FrameRenderer:
             moved if self.detail else None,
             window,
             lips,
+            (gain, offset),
         )
 
     @torch.inference_mode()
@@ -403,6 +423,7 @@ class FrameRenderer:
         patches = (self._patches if level == 0 else self._pyramid[level - 1])[torch.from_numpy(entries)]
         gains = self._colour_gains(entries, face.lips)
         moved = sample_pixels(patches, pos / 2**level) * gains[:, :, None, None]  # sample_pixels: as float
+        moved = self._in_light(moved, face.light)
         blurred = gaussian_blur2d(
             torch.cat([moved, render[None, :, r0p:r1p, c0p:c1p].float().cpu() * 255]),
             (7, 7),
@@ -505,7 +526,7 @@ class FrameRenderer:
         tri, bary = geo.triangle_id[r0:r1, c0:c1], geo.barycentric[r0:r1, c0:c1]
         pos = self.mouths.positions(mouth, tri, bary, self._triangles)
         gain = self._colour_gains(np.array([mouth]), face.lips)[0]
-        patch = self._patches[mouth].float() * gain[:, None, None]
+        patch = self._in_light(self._patches[mouth].float() * gain[:, None, None], face.light)
         return patch, pos, geo.mouth[0, 0, r0:r1, c0:c1], (r0, c0)
 
     def _rendered_lips(
@@ -520,6 +541,14 @@ class FrameRenderer:
             return None
         rendered = render[:, lips.to(render.device)].float().sum(-1).cpu()  # only the lips leave the device
         return tri[lips], geo.barycentric[lips], rendered
+
+    @staticmethod
+    def _in_light(levels: torch.Tensor, light: tuple[torch.Tensor, torch.Tensor] | None) -> torch.Tensor:
+        """Bank pixels ``(..., 3, h, w)`` (levels of 255) put into a frame's light (``FaceRender.light``)."""
+        if light is None:
+            return levels
+        gain, offset = light
+        return levels * gain + offset * 255
 
     def _colour_gains(self, entries: np.ndarray, lips: tuple[torch.Tensor, ...] | None) -> torch.Tensor:
         """``(K, 3)`` per-channel gains that give bank ``entries``' lips the rendered ``lips``' mean colour

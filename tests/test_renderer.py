@@ -872,3 +872,69 @@ def test_a_detail_source_from_another_frame_keeps_the_footage_own_pixels_off_the
     error = np.abs(fine(out) - fine(real))
     # 0.02 measured; 0.29 when the band took the networks' render (the footage's detail only where paint < 1)
     assert error[off].mean() < 0.1 * error[on].mean()
+
+
+def test_colour_match_finds_a_fade_and_leaves_the_networks_softness_alone():
+    """A footage frame fading to white is an affine change of the face's colours, found over the face the
+    frame keeps even with a hand in front of part of it; a render a little softer than the footage (gain
+    1.05) or a level off is left as it is; too few pixels give no change."""
+    from renderer.crop import colour_match
+
+    rng = np.random.default_rng(0)
+    render = torch.from_numpy(rng.uniform(0.2, 0.8, (3, 40, 40))).float()
+    where = torch.zeros(40, 40, dtype=torch.bool)
+    where[:30] = True
+    faded = 0.4 * render + 0.6
+    faded[:, :5] = 0.1  # a dark hand over a sixth of the measured pixels
+    gain, offset = colour_match(render, faded, where)
+    assert torch.allclose(gain, torch.full((3, 1, 1), 0.4), atol=0.02)
+    assert torch.allclose(offset, torch.full((3, 1, 1), 0.6), atol=0.02)
+    softer = render.mean() + 1.05 * (render - render.mean()) + 2 / 255
+    gain, offset = colour_match(render, softer, where)
+    assert torch.equal(gain, torch.ones(3, 1, 1)) and torch.equal(offset, torch.zeros(3, 1, 1))
+    few = torch.zeros_like(where)
+    few[0, :10] = True
+    gain, offset = colour_match(render, faded, few)
+    assert torch.equal(gain, torch.ones(3, 1, 1)) and torch.equal(offset, torch.zeros(3, 1, 1))
+
+
+class _UVFace(torch.nn.Module):
+    """Stands in for trained networks on the synthetic footage: paints the mesh in the footage's own
+    UV colours (so it renders a frame's face as the footage showed it before any fade)."""
+
+    source_input = False
+
+    def forward(self, uv, mask, mouth, background, region, source=None):
+        face = torch.cat([uv, 1 - uv[..., :1]], -1).permute(0, 3, 1, 2) * mask
+        return face, face + (1 - mask) * background
+
+
+def test_the_painted_face_follows_a_footage_frame_fading_to_white(footage, face_model, tmp_path, monkeypatch):
+    """Networks that learned the face in the footage's light paint it so into a frame that fades to
+    white; the painted lower face takes the faded frame's light from the face around it, and a frame in
+    the learned light is painted as without the match."""
+    import renderer.render
+    from renderer.networks import make_renderer, save_renderer
+    from renderer.render import FrameRenderer
+
+    path, seq = footage
+    plain = replace(TINY, source_input=False)
+    save_renderer(make_renderer(plain), tmp_path, plain, {})
+    real = list(iter_frames(path))[3]
+    faded = np.round(0.35 * real + 0.65 * 255).astype(np.uint8)
+
+    def rendered(match: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if not match:
+            unchanged = (torch.ones(3, 1, 1), torch.zeros(3, 1, 1))
+            monkeypatch.setattr(renderer.render, "colour_match", lambda *a, **k: unchanged)
+        with FrameRenderer(tmp_path, face_model, seq, detail=False, interiors=False) as fr:
+            fr.net = _UVFace()
+            out, weight = fr.render(real, 3, fr.tracked(3), with_weight=True)
+            return out.astype(int), fr.render(faded, 3, fr.tracked(3)).astype(int), weight
+
+    (real_on, faded_on, weight), (real_off, faded_off, _) = rendered(True), rendered(False)
+    painted = (weight > 0.9) & (np.abs(real.astype(int) - 90).sum(-1) > 30)  # the face, not the backdrop
+    assert painted.sum() > 20
+    assert np.abs(real_on - real_off)[painted].mean() < 0.5  # the learned light: as without the match
+    err_on, err_off = (np.abs(x - faded)[painted].mean() for x in (faded_on, faded_off))
+    assert err_on < 0.35 * err_off
