@@ -938,3 +938,35 @@ def test_the_painted_face_follows_a_footage_frame_fading_to_white(footage, face_
     assert np.abs(real_on - real_off)[painted].mean() < 0.5  # the learned light: as without the match
     err_on, err_off = (np.abs(x - faded)[painted].mean() for x in (faded_on, faded_off))
     assert err_on < 0.35 * err_off
+
+
+def test_the_bank_s_teeth_follow_a_footage_frame_fading_to_white(footage, face_model, tmp_path):
+    """A bank entry's interior pasted into a frame that fades to white takes the frame's light like the
+    painted face around it (its colours still follow the lips as the networks learned them)."""
+    from nvp.geometry import posed
+    from renderer.mouths import build_mouth_bank
+    from renderer.networks import make_renderer, save_renderer
+    from renderer.render import FrameRenderer
+
+    path, seq = footage
+    preset = replace(TINY, crop=64, source_input=False)
+    save_renderer(make_renderer(preset), tmp_path, preset, {})
+    k = face_model.exp_basis.shape[0]
+    wide = 4.0 * np.eye(k, dtype=np.float32)[np.argmax(face_model.inner_lip_gap(seq.identity, np.eye(k)))]
+    opened = posed(face_model.vertices(seq.identity, wide[None])[0], seq.rotation[5], seq.translation[5])
+    bank = build_mouth_bank(path, seq, face_model, frames=np.array([2, 6]))
+    bank.patches[0], bank.patches[1] = (0, 160, 0), (120, 100, 90)
+    bank.save(tmp_path / "mouths")
+    real = list(iter_frames(path))[5]
+    faded = np.round(0.35 * real + 0.65 * 255).astype(np.uint8)
+    with FrameRenderer(tmp_path, face_model, seq) as fr:
+        fr.net = _UVFace()
+        shown = {}
+        for name, frame in (("real", real), ("faded", faded)):
+            face = fr.prepare(frame, 5, opened, fr.tracked(5))
+            shown[name] = [fr.composite(face, e).astype(int) for e in (0, 1)]
+    interior = np.abs(shown["real"][0] - shown["real"][1]).max(-1) > 40  # where the entries show
+    assert interior.sum() >= 2
+    # in the faded frame the grey entry is as much lighter as the frame is (0.65 of the way to white)
+    lifted = shown["faded"][1][interior].mean() - shown["real"][1][interior].mean()
+    assert lifted > 0.4 * (255 - shown["real"][1][interior].mean())
