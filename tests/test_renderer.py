@@ -761,28 +761,38 @@ def test_an_open_rendered_mouth_shows_the_person_s_own_interior_from_the_bank(fo
     assert np.all(np.abs(np.log(ratio)) <= 2 * np.log(1 + INTERIOR_TOLERANCE) + 0.02), ratio
 
 
-def test_the_bank_entry_whose_interior_looks_like_the_networks_own_is_chosen(
-    footage, face_model, tmp_path, monkeypatch
-):
-    """Two bank entries of the same inner-lip shape and light: the one whose interior agrees with the
-    networks' soft interior (here: all grey) wins, and only the nearest ``CANDIDATES`` are compared."""
-    import renderer.render as render_module
+def _opened_mouth_with_bank(footage, face_model, tmp_path, colours, same_shapes: bool = False) -> np.ndarray:
+    """An untrained 64² renderer in ``tmp_path`` with a two-entry mouth bank (footage frames 2 and 6, their
+    interiors painted ``colours``; ``same_shapes``: entry 1 takes entry 0's inner-lip shape, so only their
+    interiors differ), and frame 5's geometry with the mouth wide open ``(V, 3)``."""
     from nvp.geometry import posed
     from renderer.mouths import build_mouth_bank
     from renderer.networks import make_renderer, save_renderer
-    from renderer.render import FrameRenderer
 
     path, seq = footage
     preset = replace(TINY, crop=64, source_input=False)
     save_renderer(make_renderer(preset), tmp_path, preset, {})
     k = face_model.exp_basis.shape[0]
     wide = 4.0 * np.eye(k, dtype=np.float32)[np.argmax(face_model.inner_lip_gap(seq.identity, np.eye(k)))]
-    opened = posed(face_model.vertices(seq.identity, wide[None])[0], seq.rotation[5], seq.translation[5])
     bank = build_mouth_bank(path, seq, face_model, frames=np.array([2, 6]))
-    bank.shapes[1], bank.pixels[1] = bank.shapes[0], bank.pixels[0]  # only their interiors differ
-    grey = np.array([120, 100, 90], np.uint8)
-    bank.patches[0], bank.patches[1] = (0, 255, 0), grey
+    if same_shapes:
+        bank.shapes[1], bank.pixels[1] = bank.shapes[0], bank.pixels[0]
+    bank.patches[0], bank.patches[1] = colours
     bank.save(tmp_path / "mouths")
+    return posed(face_model.vertices(seq.identity, wide[None])[0], seq.rotation[5], seq.translation[5])
+
+
+def test_the_bank_entry_whose_interior_looks_like_the_networks_own_is_chosen(
+    footage, face_model, tmp_path, monkeypatch
+):
+    """Two bank entries of the same inner-lip shape and light: the one whose interior agrees with the
+    networks' soft interior (here: all grey) wins, and only the nearest ``CANDIDATES`` are compared."""
+    import renderer.render as render_module
+    from renderer.render import FrameRenderer
+
+    path, seq = footage
+    grey = np.array([120, 100, 90], np.uint8)
+    opened = _opened_mouth_with_bank(footage, face_model, tmp_path, ((0, 255, 0), grey), same_shapes=True)
 
     class Flat:  # networks that paint everything grey
         source_input = False
@@ -943,20 +953,10 @@ def test_the_painted_face_follows_a_footage_frame_fading_to_white(footage, face_
 def test_the_bank_s_teeth_follow_a_footage_frame_fading_to_white(footage, face_model, tmp_path):
     """A bank entry's interior pasted into a frame that fades to white takes the frame's light like the
     painted face around it (its colours still follow the lips as the networks learned them)."""
-    from nvp.geometry import posed
-    from renderer.mouths import build_mouth_bank
-    from renderer.networks import make_renderer, save_renderer
     from renderer.render import FrameRenderer
 
     path, seq = footage
-    preset = replace(TINY, crop=64, source_input=False)
-    save_renderer(make_renderer(preset), tmp_path, preset, {})
-    k = face_model.exp_basis.shape[0]
-    wide = 4.0 * np.eye(k, dtype=np.float32)[np.argmax(face_model.inner_lip_gap(seq.identity, np.eye(k)))]
-    opened = posed(face_model.vertices(seq.identity, wide[None])[0], seq.rotation[5], seq.translation[5])
-    bank = build_mouth_bank(path, seq, face_model, frames=np.array([2, 6]))
-    bank.patches[0], bank.patches[1] = (0, 160, 0), (120, 100, 90)
-    bank.save(tmp_path / "mouths")
+    opened = _opened_mouth_with_bank(footage, face_model, tmp_path, ((0, 160, 0), (120, 100, 90)))
     real = list(iter_frames(path))[5]
     faded = np.round(0.35 * real + 0.65 * 255).astype(np.uint8)
     with FrameRenderer(tmp_path, face_model, seq) as fr:
