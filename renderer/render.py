@@ -306,26 +306,24 @@ class FrameRenderer:
         # the footage frame may show the face in other light than the frames the networks learned (a fade
         # to white, a brighter take): their render of the face the frame keeps (the mesh above and around
         # the painted part, whose geometry a dub leaves alone) says how, and the painted part follows
-        kept_face = (erode(geo.mask, 2) > 0.5) & (dilate(paint, 3) == 0)
+        mesh = geo.mask[..., rows, cols]
+        kept_face = (erode(mesh, 2) > 0.5) & (dilate(paint[..., rows, cols], 3) == 0)
         gain, offset = colour_match(
-            inside[0].cpu(), crop[0, :, rows, cols], kept_face[0, 0, rows, cols], min_pixels=paint.shape[-1]
+            inside[0].cpu(), crop[0, :, rows, cols], kept_face[0, 0], min_pixels=paint.shape[-1]
         )
+        final = crop.to(inside).clone()  # outside the window the crop itself (its paste weight is 0)
+        final[..., rows, cols] = inside
+        # where a bank entry's interior may go, and the lips its colours follow (in the light the networks
+        # learned, as the bank's own lips are): found once per frame
+        window = self._interior_window(geo) if self.mouths is not None else None
+        lips = self._rendered_lips(geo, final[0]) if window is not None else None
         # on the mesh only: off it the compositing network paints from the footage around it, in its light
-        on_mesh = box_blur(geo.mask[..., rows, cols], 2).to(dev)
-        learned = inside
+        on_mesh = box_blur(mesh, 2).to(dev)
         inside = (inside + on_mesh * (inside * (gain.to(dev) - 1) + offset.to(dev))).clamp(0, 1)
+        final[..., rows, cols] = inside
         if self.detail:  # the footage's band of skin detail too where the surface moved rigidly
             own = (own_geo, own_cam, source[0] is frame)
             moved = self._band(moved, inside, (rows, cols), geo, vertices_cam, source, own)
-        final = crop.to(inside).clone()  # outside the window the crop itself (its paste weight is 0)
-        final[..., rows, cols] = inside
-        # where a bank entry's interior may go, and the lips its colours follow: found once per frame
-        window = self._interior_window(geo) if self.mouths is not None else None
-        lips = None
-        if window is not None:
-            in_learned_light = final.clone()
-            in_learned_light[..., rows, cols] = learned
-            lips = self._rendered_lips(geo, in_learned_light[0])
         return FaceRender(
             frame,
             index,
