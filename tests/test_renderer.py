@@ -117,6 +117,33 @@ def test_paste_region_covers_exactly_the_pixels_its_weight_reaches():
     assert paste_region(frame, crop, np.array([120.0, 95.0, 150.0]), torch.zeros(1, 1, 48, 48)) is None
 
 
+def test_a_pasted_mouth_interior_meets_the_lips_over_a_footage_pixel_not_a_crop_pixel():
+    """On footage four times finer than the crop, the bank's interior (here white) takes over from the render
+    (black) over about one footage pixel, where the crop's mask enlarged as it is ramped over four, and the
+    edge stays where that mask puts it; on footage as fine as the crop the edge is as before."""
+    from renderer.crop import INTERIOR_EDGE_LEVEL, INTERIOR_EDGE_SLOPE, paste_region
+
+    s, radius = 48, 10.3  # a disc of mouth interior in a 48² crop, centred on crop pixel 24
+    centres = torch.arange(s, dtype=torch.float32) + 0.5
+    yy, xx = torch.meshgrid(centres, centres, indexing="ij")
+    disc = (((xx - 24) ** 2 + (yy - 24) ** 2) < radius**2).float()
+    interior = (torch.full((3, 16, 16), 200.0), torch.full((32, 32, 2), 8.0), disc[8:40, 8:40], (8, 8))
+    for step in (4, 1):
+        side = s * step
+        frame = torch.zeros(3, side + 20, side + 20)
+        box = np.array([side / 2 + 10, side / 2 + 10, side])
+        crop = torch.zeros(3, s, s)
+        pixels, _, (rows, cols) = paste_region(frame, crop, box, torch.ones(1, 1, s, s), interior=interior)
+        row = pixels[0, (side + 20) // 2 - rows.start, : (side + 20) // 2 - cols.start]  # the left half
+        ramp = int(((row > 20) & (row < 180)).sum())
+        # the binary mask's edge lies between the last crop pixel centre outside the disc (13.5) and the first
+        # inside (14.5), at crop x = 14; the bank takes over a little inside it, at frame x = 10 + x * step
+        edge = 14 + (INTERIOR_EDGE_LEVEL - 0.5) / INTERIOR_EDGE_SLOPE
+        crossing = float(torch.nonzero(row >= 100)[0, 0]) + 0.5 + cols.start
+        assert abs(crossing - (10 + edge * step)) <= 0.5 * step, (step, crossing)
+        assert ramp <= 2, (step, ramp)  # at step 4: 3-4 pixels between 20 and 180 before
+
+
 def test_paste_keeps_the_footage_detail_outside_the_replaced_region():
     torch.manual_seed(0)
     frame = torch.rand(3, 200, 200) * 255  # fine detail that a 48 px crop of a 160 px box cannot hold
@@ -752,7 +779,8 @@ def test_an_open_rendered_mouth_shows_the_person_s_own_interior_from_the_bank(fo
     assert inner.sum() >= 4  # the wide-open mouth shows its interior
     near = dilate(inner.float()[None, None], 4)[0, 0].numpy() > 0  # a crop pixel is ~2 frame pixels
     changed = np.abs(teeth - plain).sum(-1) > 0
-    assert changed[inner.numpy()].mean() > 0.9 and not changed[~near].any()  # there and only there
+    # there and only there (the edge of a crop pixel's mask, and a little inside it: INTERIOR_EDGE_LEVEL)
+    assert changed[inner.numpy()].mean() > 0.8 and not changed[~near].any()
     green = teeth[inner.numpy()].mean(0)  # green, its level that of the rendered lips' green
     assert green[1] > 100 and green[0] < 60 and green[2] < 60
     # the tint (0.5 on green, 1.6 on blue) is taken back to within the tolerance of each paste (both may
