@@ -49,8 +49,9 @@ class EvalConfig:
     """Part of the video used to fit the person; the rest is held out."""
     preset: str = "cpu"
     """Renderer preset."""
-    budget_minutes: float | None = 30.0
-    """Renderer training time."""
+    budget_minutes: float | None = None
+    """Renderer training time (None: as ``nvp fit``'s default, the preset's time on a CPU, so the numbers are
+    those of the person a plain ``nvp fit`` makes)."""
     steps: int | None = None
     """Renderer training steps (None: the preset's, within the budget)."""
     features: str = "phonemes"
