@@ -120,7 +120,8 @@ def test_paste_region_covers_exactly_the_pixels_its_weight_reaches():
 def test_a_pasted_mouth_interior_meets_the_lips_over_a_footage_pixel_not_a_crop_pixel():
     """On footage four times finer than the crop, the bank's interior (here white) takes over from the render
     (black) over about one footage pixel, where the crop's mask enlarged as it is ramped over four, and the
-    edge stays where that mask puts it; on footage as fine as the crop the edge is as before."""
+    edge stays where that mask puts it (a little inside: ``INTERIOR_EDGE_LEVEL``); on footage as fine as the
+    crop the ramp stays a crop pixel wide."""
     from renderer.crop import INTERIOR_EDGE_LEVEL, INTERIOR_EDGE_SLOPE, paste_region
 
     s, radius = 48, 10.3  # a disc of mouth interior in a 48² crop, centred on crop pixel 24
