@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 import torch.nn.functional as F
-from kornia.filters import gaussian_blur2d
+from kornia.filters import gaussian_blur2d, get_gaussian_kernel1d
 
 from renderer.masks import box_blur, dilate
 from renderer.warp import moved_detail, sample_pixels, smooth
@@ -340,9 +340,9 @@ INTERIOR_EDGE_SIGMA = 0.5
 """Blur (crop pixels) of the crop's binary mouth-interior mask before it is enlarged to the footage's pixels
 and cut there (:func:`sharp_edge`): enough to round the crop pixels' staircase into the inner lips' curve."""
 
-INTERIOR_EDGE_SLOPE = 0.79
-"""Slope (per crop pixel) of the blurred mask across a straight edge of the binary one: the 3×3 Gaussian of
-:data:`INTERIOR_EDGE_SIGMA` spreads a 0 | 1 step to 0.107 | 0.893."""
+INTERIOR_EDGE_SLOPE = float(get_gaussian_kernel1d(3, INTERIOR_EDGE_SIGMA)[0, 1])
+"""Slope (per crop pixel) of the blurred mask across a straight edge of the binary one: the 3×3 Gaussian's
+centre weight (0.79: a 0 | 1 step becomes 0.107 | 0.893)."""
 
 INTERIOR_EDGE_LEVEL = 0.6
 """Level of the blurred mask where the bank's interior takes over (0.5: the binary mask's own edge; 0.6 lies

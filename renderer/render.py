@@ -111,7 +111,8 @@ class FaceRender:
             (:meth:`FrameRenderer._interior_window`; None when it shows none); lips: the rendered lips
             there (:meth:`FrameRenderer._rendered_lips`, in the light the networks learned), which the bank
             entries' colours follow; light: ``(gain, offset)`` ``(3, 1, 1)`` each that took the networks'
-            render into the frame's light, and takes a bank entry's interior there too.
+            render into the frame's light, and takes a bank entry's interior there too (None: the light the
+            networks learned, nothing changed).
     """
 
     frame: np.ndarray
@@ -311,16 +312,17 @@ class FrameRenderer:
         gain, offset = colour_match(
             inside[0].cpu(), crop[0, :, rows, cols], kept_face[0, 0], min_pixels=paint.shape[-1]
         )
+        lit = bool((gain != 1).any() or (offset != 0).any())  # most frames: the light the networks learned
         final = crop.to(inside).clone()  # outside the window the crop itself (its paste weight is 0)
         final[..., rows, cols] = inside
         # where a bank entry's interior may go, and the lips its colours follow (in the light the networks
         # learned, as the bank's own lips are): found once per frame
         window = self._interior_window(geo) if self.mouths is not None else None
         lips = self._rendered_lips(geo, final[0]) if window is not None else None
-        # on the mesh only: off it the compositing network paints from the footage around it, in its light
-        on_mesh = box_blur(mesh, 2).to(dev)
-        inside = (inside + on_mesh * (inside * (gain.to(dev) - 1) + offset.to(dev))).clamp(0, 1)
-        final[..., rows, cols] = inside
+        if lit:  # on the mesh only: off it the compositing network paints from the footage, in its light
+            on_mesh = box_blur(mesh, 2).to(dev)
+            inside = (inside + on_mesh * (inside * (gain.to(dev) - 1) + offset.to(dev))).clamp(0, 1)
+            final[..., rows, cols] = inside
         if self.detail:  # the footage's band of skin detail too where the surface moved rigidly
             own = (own_geo, own_cam, source[0] is frame)
             moved = self._band(moved, inside, (rows, cols), geo, vertices_cam, source, own)
@@ -338,7 +340,7 @@ class FrameRenderer:
             moved if self.detail else None,
             window,
             lips,
-            (gain, offset),
+            (gain, offset) if lit else None,
         )
 
     @torch.inference_mode()
