@@ -26,7 +26,8 @@ from renderer.preset import Preset
 from renderer.warp import sample_pixels, source_positions
 
 CACHE_FIELDS = ("frames", "crops", "uv", "mask", "mouth", "region", "boxes", "vertices", "camera")
-CACHE_VERSION = 2  # 2: camera-frame vertices and the camera, for moving one frame's pixels onto another
+CACHE_VERSION = 3  # 2: camera-frame vertices and the camera, for moving one frame's pixels onto another;
+# 3: frames in a passing light (a fade, a flash) left out (transient_light)
 
 log = logging.getLogger(__name__)
 
@@ -152,6 +153,15 @@ class FrameCache:
         )
         return crops.to(device), geo
 
+    def keep(self, rows: np.ndarray) -> None:
+        """Keep only the frames of ``rows`` (increasing), moved down in place: no second copy of the crops."""
+        for name in (n for n in CACHE_FIELDS if n != "camera"):  # the per-frame fields
+            array = getattr(self, name)
+            for to, row in enumerate(rows):
+                if to != row:
+                    array[to] = array[row]
+            setattr(self, name, array[: len(rows)])
+
     def save(self, path: Path, source: dict | None = None) -> Path:
         """Write ``path`` (``.json`` + ``.npz``, :mod:`nvp.artifact`); ``source`` says what it was cut from
         (checked by :meth:`load` so a cache is never reused for other footage)."""
@@ -172,6 +182,55 @@ CACHE_BUDGET_MB = 1536.0
 frames: 1.6 GB at the ``cpu`` preset's 192² crop, 2.9 GB at ``quality``'s 256², which took ``nvp fit`` on a
 3-minute 1080p video to 5.5 GB peak (``scripts/bench_fit.py --preset quality``). Beyond the budget every
 n-th frame is kept; neighbouring frames are nearly alike, and a fit draws 16,000 training samples at most."""
+
+
+LIGHT_TOLERANCE = 0.15
+"""Largest relative difference (per channel) between a frame's face light (:func:`face_light`) and the
+footage's median still taken as the footage's light. Over every frame of five single-take videos (dfrf__cnn2,
+edtalk__pose_source2, wav2lipgfpgan kim, minimates__driving, latentsync demo3) the largest difference is
+0.03-0.05, kim's first two frames 0.18; the fades of wth2025__lamazda reach 0.65."""
+
+LIGHT_TRANSIENT_S = 2.0
+"""Longest run of frames beyond :data:`LIGHT_TOLERANCE` left out of the training (:func:`transient_light`):
+a fade, a flash or a jump of the camera's exposure. A longer run is another take shot in other light
+(voxceleb2_id00100's joined clips: the first 15 s magenta-lit), which the networks must learn too."""
+
+
+def face_light(crops: np.ndarray, mask: np.ndarray, mouth: np.ndarray) -> np.ndarray:
+    """``(N, 3)`` each crop's light: the median colour of the face the mesh covers, without the mouth
+    interior (``crops`` ``(N, S, S, 3)``; ``mask``, ``mouth`` ``(N, S, S)`` bool); NaN where it covers
+    none."""
+    out = np.full((len(crops), 3), np.nan, np.float32)
+    for i, (crop, face) in enumerate(zip(crops, mask & ~mouth, strict=True)):
+        if face.any():
+            out[i] = np.median(crop[face], axis=0)
+    return out
+
+
+def transient_light(
+    frames: np.ndarray,
+    light: np.ndarray,
+    fps: float,
+    tolerance: float = LIGHT_TOLERANCE,
+    longest_s: float = LIGHT_TRANSIENT_S,
+) -> np.ndarray:
+    """``(N,)`` bool: the frames (sorted frame indices ``frames`` ``(N,)``, their :func:`face_light`
+    ``light``) whose light differs from the footage's median by more than ``tolerance`` in some channel, in
+    runs no longer than ``longest_s``. The networks learn one appearance of the face; a faded frame taught
+    them a darker or paler face (a dark ring around the lips in the deepest frames of a fade), while the
+    light match of the render (:func:`renderer.crop.colour_match`) puts the footage's face into any light."""
+    off = np.zeros(len(frames), bool)
+    known = np.isfinite(light).all(1)
+    if not known.any():
+        return off
+    reference = np.maximum(np.median(light[known], axis=0), 1.0)
+    ratio = np.abs(np.log(np.maximum(light[known], 1.0) / reference)).max(1)
+    off[known] = ratio > np.log1p(tolerance)
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], off.astype(np.int8), [0]])))
+    for start, end in zip(edges[::2], edges[1::2], strict=True):
+        if (frames[end - 1] - frames[start] + 1) / fps > longest_s:
+            off[start:end] = False
+    return off
 
 
 def cache_frame_bytes(size: int, num_vertices: int) -> int:
@@ -232,6 +291,14 @@ def build_cache(
         bar.close()
     finally:
         rast.close()
+    off = transient_light(frames, face_light(cache.crops, cache.mask, cache.mouth), seq.fps)
+    if off.any():
+        log.info(
+            "%d frames whose light is far from the footage's (a fade, a flash) are left out of the "
+            "renderer's training",
+            off.sum(),
+        )
+        cache.keep(np.flatnonzero(~off))
     return cache
 
 

@@ -252,6 +252,38 @@ def test_the_frame_cache_keeps_to_its_memory_budget(footage, face_model):
     assert nbytes <= 4.5 * per_frame
 
 
+def test_frames_in_a_passing_light_are_told_from_another_take():
+    from renderer.data import transient_light
+
+    light = np.tile(np.float32([180, 140, 120]), (400, 1))
+    light[100:110] = [230, 215, 210]  # a 0.4 s fade towards white
+    light[300:] *= [1.0, 0.8, 1.6]  # from 12 s on another take, magenta-lit: 4 s, kept
+    light[200:205] *= 1.1  # within the tolerance
+    off = transient_light(np.arange(400), light, 25.0)
+    np.testing.assert_array_equal(np.flatnonzero(off), np.arange(100, 110))
+    # the length of a run is counted in the footage's time, also when the cache kept every 40th frame
+    frames = np.arange(400) * 40
+    assert not transient_light(frames, light, 25.0)[100:110].any()
+    assert not transient_light(np.arange(3), np.full((3, 3), np.nan), 25.0).any()  # no face: nothing known
+
+
+def test_frames_of_a_fade_are_left_out_of_the_training_frames(footage, face_model, tmp_path):
+    path, seq = footage
+    faded = tmp_path / "faded.mp4"
+    with VideoWriter(faded, 25.0, SIZE, SIZE) as w:
+        for t, img in enumerate(iter_frames(path)):
+            w.write((img * 0.4 + 255 * 0.6).astype(np.uint8) if 4 <= t <= 6 else img)
+    plain = build_cache(path, seq, face_model, TINY, np.arange(12), progress=False)
+    cache = build_cache(faded, seq, face_model, TINY, np.arange(12), progress=False)
+    kept = [0, 1, 2, 3, 7, 8, 9, 10, 11]
+    np.testing.assert_array_equal(cache.frames, kept)
+    for name in ("uv", "mask", "mouth", "region", "boxes", "vertices"):  # moved down with their frame
+        np.testing.assert_array_equal(getattr(cache, name), getattr(plain, name)[kept], err_msg=name)
+    # the crops too (the faded video was encoded again, so its kept frames differ by the codec's error)
+    diff = np.abs(cache.crops.astype(int) - plain.crops[kept]).mean((1, 2, 3))
+    assert diff.max() < 3
+
+
 def test_training_resumes_exactly_and_renders(footage, face_model, tmp_path):
     from renderer.render import FrameRenderer
 
