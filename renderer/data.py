@@ -186,9 +186,10 @@ n-th frame is kept; neighbouring frames are nearly alike, and a fit draws 16,000
 
 LIGHT_TOLERANCE = 0.15
 """Largest relative difference (per channel) between a frame's face light (:func:`face_light`) and the
-footage's median still taken as the footage's light. Over every frame of five single-take videos (dfrf__cnn2,
-edtalk__pose_source2, wav2lipgfpgan kim, minimates__driving, latentsync demo3) the largest difference is
-0.03-0.05, kim's first two frames 0.18; the fades of wth2025__lamazda reach 0.65."""
+footage's median still taken as the footage's light. Over every frame of six single-take videos (dfrf__cnn2,
+edtalk__pose_source2, wav2lipgfpgan kim, minimates__driving, latentsync demo3, multivsr hxn8clTtMTo) the
+largest difference is 0.03-0.05 (multivsr's bearded face 0.135), kim's first two frames (a fade-in from
+dark) 0.18; the fades of wth2025__lamazda reach 0.65."""
 
 LIGHT_TRANSIENT_S = 2.0
 """Longest run of frames beyond :data:`LIGHT_TOLERANCE` left out of the training (:func:`transient_light`):
@@ -216,9 +217,11 @@ def transient_light(
 ) -> np.ndarray:
     """``(N,)`` bool: the frames (sorted frame indices ``frames`` ``(N,)``, their :func:`face_light`
     ``light``) whose light differs from the footage's median by more than ``tolerance`` in some channel, in
-    runs no longer than ``longest_s``. The networks learn one appearance of the face; a faded frame taught
-    them a darker or paler face (a dark ring around the lips in the deepest frames of a fade), while the
-    light match of the render (:func:`renderer.crop.colour_match`) puts the footage's face into any light."""
+    runs no longer than ``longest_s``. The networks learned faded frames as they were, and a dub of them,
+    whose mouth is not the footage's, showed a violet or grey-blue mouth with a dark ring around it; without
+    them the networks paint the face in the footage's usual light and the render's light match
+    (:func:`renderer.crop.colour_match`) puts it into the frame's (README: *Fades left out of the renderer's
+    training*)."""
     off = np.zeros(len(frames), bool)
     known = np.isfinite(light).all(1)
     if not known.any():
