@@ -296,9 +296,9 @@ def build_cache(
         rast.close()
     off = transient_light(frames, face_light(cache.crops, cache.mask, cache.mouth), seq.fps)
     if off.any():
-        log.info(
-            "%d frames whose light is far from the footage's (a fade, a flash) are left out of the "
-            "renderer's training",
+        log.warning(
+            "%s: %d frames in a passing light (a fade, a flash) are left out of the renderer's training",
+            video.name,
             off.sum(),
         )
         cache.keep(np.flatnonzero(~off))
