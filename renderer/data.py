@@ -22,6 +22,7 @@ from nvp.geometry import pinhole
 from nvp.tracked import TrackedSequence
 from renderer.crop import crop_boxes, crop_camera, cut
 from renderer.masks import dilate
+from renderer.mouths import LIGHT_TOLERANCE, light_ratio
 from renderer.preset import Preset
 from renderer.warp import sample_pixels, source_positions
 
@@ -184,17 +185,11 @@ frames: 1.6 GB at the ``cpu`` preset's 192² crop, 2.9 GB at ``quality``'s 256²
 n-th frame is kept; neighbouring frames are nearly alike, and a fit draws 16,000 training samples at most."""
 
 
-LIGHT_TOLERANCE = 0.15
-"""Largest relative difference (per channel) between a frame's face light (:func:`face_light`) and the
-footage's median still taken as the footage's light. Over every frame of six single-take videos (dfrf__cnn2,
-edtalk__pose_source2, wav2lipgfpgan kim, minimates__driving, latentsync demo3, multivsr hxn8clTtMTo) the
-largest difference is 0.03-0.05 (multivsr's bearded face 0.135), kim's first two frames (a fade-in from
-dark) 0.18; the fades of wth2025__lamazda reach 0.65."""
-
 LIGHT_TRANSIENT_S = 2.0
-"""Longest run of frames beyond :data:`LIGHT_TOLERANCE` left out of the training (:func:`transient_light`):
-a fade, a flash or a jump of the camera's exposure. A longer run is another take shot in other light
-(voxceleb2_id00100's joined clips: the first 15 s magenta-lit), which the networks must learn too."""
+"""Longest run of frames beyond :data:`renderer.mouths.LIGHT_TOLERANCE` left out of the training
+(:func:`transient_light`): a fade, a flash or a jump of the camera's exposure. A longer run is another take
+shot in other light (voxceleb2_id00100's joined clips: the first 15 s magenta-lit), which the networks must
+learn too."""
 
 
 def face_light(crops: np.ndarray, mask: np.ndarray, mouth: np.ndarray) -> np.ndarray:
@@ -226,9 +221,7 @@ def transient_light(
     known = np.isfinite(light).all(1)
     if not known.any():
         return off
-    reference = np.maximum(np.median(light[known], axis=0), 1.0)
-    ratio = np.abs(np.log(np.maximum(light[known], 1.0) / reference)).max(1)
-    off[known] = ratio > np.log1p(tolerance)
+    off[known] = light_ratio(light[known], np.median(light[known], axis=0)) > np.log1p(tolerance)
     edges = np.flatnonzero(np.diff(np.concatenate([[0], off.astype(np.int8), [0]])))
     for start, end in zip(edges[::2], edges[1::2], strict=True):
         if (frames[end - 1] - frames[start] + 1) / fps > longest_s:
