@@ -27,8 +27,9 @@ from renderer.preset import Preset
 from renderer.warp import sample_pixels, source_positions
 
 CACHE_FIELDS = ("frames", "crops", "uv", "mask", "mouth", "region", "boxes", "vertices", "camera")
-CACHE_VERSION = 3  # 2: camera-frame vertices and the camera, for moving one frame's pixels onto another;
-# 3: frames in a passing light (a fade, a flash) left out (transient_light)
+CACHE_VERSION = 4  # 2: camera-frame vertices and the camera, for moving one frame's pixels onto another;
+# 3: frames in a passing light (a fade, a flash) left out (transient_light); 4: crops averaged over the
+# footage pixels they cover (renderer.crop.cut), not point-sampled
 
 log = logging.getLogger(__name__)
 

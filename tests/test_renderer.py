@@ -71,6 +71,22 @@ def test_cut_and_paste_round_trip():
     torch.testing.assert_close(other[:, :20], frame[:, :20])  # outside the box untouched
 
 
+def test_a_cut_larger_than_the_crop_averages_the_footage_instead_of_point_sampling_it():
+    """A box three times the crop over one-pixel stripes (stubble, lip lines at 1080p): each crop pixel is the
+    mean of the three footage pixels it covers (85 or 170), not one read of them (0 or 255) that flips
+    with a sub-pixel shift of the box; smooth footage is cut as before."""
+    stripes = torch.zeros(1, 3, 600, 600)
+    stripes[..., ::2] = 255
+    crops = [cut(stripes, torch.tensor([[300.0 + dx, 300.7, 576.0]]), 192) for dx in (0.0, 0.25, 0.5)]
+    for crop in crops:
+        assert abs(float(crop.mean()) - 127.5) < 1 and float(crop.std()) < 43
+    assert float((crops[0] - crops[2]).abs().mean()) < 43  # a single read: 127.5
+    ramp = torch.linspace(0, 255, 600).expand(1, 3, 600, 600).contiguous()
+    box = torch.tensor([[300.0, 300.0, 576.0]])
+    exact = (torch.arange(192) + 0.5) * 3 + 12 - 0.5  # the crop pixels' centres in footage pixels
+    torch.testing.assert_close(cut(ramp, box, 192)[0, 0, 5], exact * 255 / 599, atol=0.05, rtol=0)
+
+
 def test_paste_region_is_the_frame_paste_under_the_box():
     from renderer.crop import paste_region
 
