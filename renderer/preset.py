@@ -21,7 +21,8 @@ class Preset:
     texture_size: int
     """Neural texture resolution (16 channels)."""
     steps: int
-    """Default training steps."""
+    """Default training steps: what a person's renderer trains without ``--steps`` or ``--budget-minutes``
+    (on a CPU at most :attr:`minutes`: on the 2-core machine nvp is measured on, the minutes end first)."""
     batch: int
     """Crops per training step."""
     region_grow: float = 0.015
@@ -32,8 +33,12 @@ class Preset:
     with 0.06, 31.9 with 0.03, 34.3 with 0.015. A dub blanks the union of the footage's and the new
     geometry's regions, so the footage's own chin is covered wherever the tracked mesh fits it."""
     minutes: float | None = None
-    """Default training time on a CPU (``nvp fit`` without ``--steps`` or ``--budget-minutes`` stops after
-    this long or after ``steps``, whichever comes first); None: ``steps`` only (a GPU preset)."""
+    """Longest default training on a CPU (``nvp fit`` without ``--steps`` or ``--budget-minutes`` stops after
+    ``steps`` or this long, whichever comes first: a slower machine still ends); None: ``steps`` only (a GPU
+    preset)."""
+    step_seconds: float | None = None
+    """Rough seconds per training step on the 2-core CPU nvp is measured on (the time a fit expects, printed
+    at its start; ``python scripts/bench_renderer.py``); None: not measured."""
     source_input: bool = False
     """Give the face network the footage's own pixels moved onto the rendered surface (see
     :func:`renderer.data.moved_source`): in a dub the footage frame already shows this person's lower face
@@ -43,7 +48,17 @@ class Preset:
 
 
 PRESETS = {
-    "cpu": Preset("cpu", crop=192, base=16, dilated=False, texture_size=256, steps=8000, batch=2, minutes=15),
+    "cpu": Preset(
+        "cpu",
+        crop=192,
+        base=16,
+        dilated=False,
+        texture_size=256,
+        steps=8000,
+        batch=2,
+        minutes=15,
+        step_seconds=0.15,
+    ),
     "quality": Preset(
         "quality", crop=256, base=32, dilated=False, texture_size=256, steps=12000, batch=4, minutes=45
     ),

@@ -39,6 +39,10 @@ from renderer.preset import Preset, get_preset
 log = logging.getLogger(__name__)
 
 
+UNLIMITED_STEPS = 10**9
+"""The step limit of a training that only its time budget ends."""
+
+
 @dataclass(frozen=True)
 class RendererTrainConfig:
     """Renderer training settings (saved with the weights)."""
@@ -46,7 +50,7 @@ class RendererTrainConfig:
     preset: str = "cpu"
     """Resolution / network size preset (``renderer.data.PRESETS``)."""
     steps: int | None = None
-    """Optimisation steps; None = the preset's default."""
+    """Optimisation steps; None = as many as ``budget_s`` allows, or the preset's default without one."""
     budget_s: float | None = None
     """Stop (and save) after this many seconds of training, whatever ``steps`` says."""
     lr: float = 1e-3
@@ -252,7 +256,7 @@ def train_renderer(
             raise ValueError(
                 f"cache crops are {cache.crops.shape[1]} px, preset {preset.name} needs {preset.crop}"
             )
-    steps = cfg.steps or preset.steps
+    steps = cfg.steps or (UNLIMITED_STEPS if cfg.budget_s is not None else preset.steps)
     world, main = (group.world, group.main) if group is not None else (1, True)
     if world > 1 and cfg.adversarial_weight > 0:
         raise ValueError("the adversarial term trains on one process only")
@@ -369,7 +373,11 @@ def train_renderer(
         if world > 1:  # the processes agree on the time (when to stop) and report the whole batch's loss
             elapsed, value = group.mean(elapsed), group.mean(value)
         running.append(value)
-        bar.update(min(elapsed, bar.total) - bar.n if timed else 1)
+        if timed:  # the bar counts seconds up to the end the steps or the budget set, whichever comes first
+            bar.total = round(min(cfg.budget_s, elapsed * steps / step))
+            bar.update(min(elapsed, bar.total) - bar.n)
+        else:
+            bar.update(1)
         if step % 50 == 0:
             bar.set_postfix(step=step, loss=f"{np.mean(running[-50:]):.4f}")
         if main and (step % cfg.preview_every == 0 or step == FIRST_PREVIEW):

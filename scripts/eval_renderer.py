@@ -67,7 +67,7 @@ def evaluate(
         cache.save(cp, source)
     cfg = RendererTrainConfig(
         preset=preset,
-        steps=steps or 10**6,
+        steps=steps,
         budget_s=None if steps else budget_min * 60,
         detail_weight=detail_weight,
         adversarial_weight=adversarial_weight,

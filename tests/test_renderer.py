@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from dataclasses import replace
 from types import SimpleNamespace
 
@@ -548,13 +549,20 @@ def test_the_renderer_learns_loss_falls_and_a_held_out_frame_improves(footage, f
 def test_a_timed_renderer_training_shows_seconds_and_time_left(footage, face_model, tmp_path, capsys):
     from renderer.train import RendererTrainConfig, train_renderer
 
-    tiny = Preset("tiny", crop=32, base=4, dilated=False, texture_size=32, steps=10**6, batch=1)
+    tiny = Preset("tiny", crop=32, base=4, dilated=False, texture_size=32, steps=3, batch=1)
     path, seq = footage
     cache = build_cache(path, seq, face_model, tiny, np.arange(4), progress=False)
+    # a time alone: as many steps as it allows, not the preset's
     info = train_renderer(cache, RendererTrainConfig(budget_s=2.0), tmp_path / "r", preset=tiny)
-    assert 2.0 <= info["train_seconds"] < 10 and info["steps"] > 1
+    assert 2.0 <= info["train_seconds"] < 10 and info["steps"] > 3
     err = capsys.readouterr().err
     assert "/2 s" in err and "left" in err
+    # steps and a time: the steps end first, and the bar counted down to their end, not to the time's
+    cfg = RendererTrainConfig(steps=4, budget_s=600.0)
+    info = train_renderer(cache, cfg, tmp_path / "r2", preset=tiny)
+    assert info["steps"] == 4 and info["train_seconds"] < 60
+    totals = [int(t) for t in re.findall(r"/(\d+) s", capsys.readouterr().err)]
+    assert totals and totals[-1] <= info["train_seconds"] + 1
 
 
 @pytest.mark.parametrize("shape", [(1, 1, 48, 48), (2, 1, 13, 20)])

@@ -600,7 +600,10 @@ def _add_renderer_training_args(p: argparse.ArgumentParser, budget_minutes: floa
     )
     p.add_argument("--steps", type=int, help="renderer training steps (default: the preset's)")
     p.add_argument(
-        "--budget-minutes", type=float, default=budget_minutes, help="stop renderer training after this long"
+        "--budget-minutes",
+        type=float,
+        default=budget_minutes,
+        help="renderer training time (with --steps: whichever ends first)",
     )
     p.add_argument(
         "--init",

@@ -32,9 +32,10 @@ class FitConfig:
     preset: str = "cpu"
     """Renderer preset (see ``renderer.preset.PRESETS``)."""
     budget_minutes: float | None = None
-    """Wall-clock limit for renderer training; None = the preset's number of steps."""
+    """Renderer training time (the steps it takes, unless ``steps`` is given too); None = the preset's
+    steps (on a CPU at most the preset's time)."""
     steps: int | None = None
-    """Renderer training steps; None = the preset's default."""
+    """Renderer training steps; None = the preset's default (or as many as ``budget_minutes`` allows)."""
     features: str = "phonemes"
     """Speech features of the person map (``phonemes`` or ``mel``)."""
     device: str = "cpu"
@@ -221,6 +222,16 @@ def renderer_minutes(cfg: FitConfig) -> float | None:
     return None
 
 
+def renderer_steps(cfg: FitConfig) -> int | None:
+    """The renderer's training steps: ``--steps``, else (with ``--budget-minutes`` alone) as many as the time
+    allows (None), else the preset's."""
+    from renderer.preset import get_preset
+
+    if cfg.steps is not None:
+        return cfg.steps
+    return None if cfg.budget_minutes is not None else get_preset(cfg.preset).steps
+
+
 def renderer_init(name: str) -> str | None:
     """``RendererTrainConfig.init`` for the ``--init`` option (``scratch`` → None)."""
     return None if name == "scratch" else name
@@ -231,10 +242,19 @@ def expected_minutes(cfg: FitConfig, frames: int) -> tuple[float, str]:
     track = frames * TRACK_S_PER_FRAME / 60
     tracking = f"tracking about {track:.0f} min" if track >= 0.5 else "tracking under a minute"
     register = frames * REGISTER_S_PER_FRAME / 60
-    train = renderer_minutes(cfg)
+    from renderer.preset import get_preset
+
+    train, steps = renderer_minutes(cfg), renderer_steps(cfg)
+    per_step = None if cfg.device.startswith("cuda") else get_preset(cfg.preset).step_seconds
+    if steps is not None and per_step is not None and (train is None or steps * per_step / 60 < train):
+        limit = "" if train is None else f", at most {train:.0f} min"
+        train = steps * per_step / 60
+        return (
+            track + train + register + 1,
+            f"{tracking}, renderer training about {train:.0f} min ({steps:,} steps{limit})",
+        )
     if train is None:
-        steps = cfg.steps or "the preset's"
-        return track + register, f"{tracking}, then renderer training for {steps} steps"
+        return track + register, f"{tracking}, then renderer training for {steps:,} steps"
     return track + train + register + 1, f"{tracking}, renderer training {train:.0f} min"
 
 
@@ -306,7 +326,7 @@ def _train_renderer(builder: BundleBuilder, cfg: FitConfig, progress: bool) -> d
     budget = None if minutes is None else minutes * 60
     tcfg = RendererTrainConfig(
         preset=cfg.preset,
-        steps=cfg.steps,
+        steps=renderer_steps(cfg),
         budget_s=budget,
         vgg_weights=cfg.vgg_weights,
         init=renderer_init(cfg.renderer_init),

@@ -95,7 +95,7 @@ def pretrain_renderer(
         raise NvpError(f"a generic renderer needs at least 2 usable videos, found {len(caches)}")
     cfg = RendererTrainConfig(
         preset=preset_name,
-        steps=steps or 10**9,
+        steps=steps,
         budget_s=None if steps else budget_minutes * 60,
         init=None,
         checkpoint_every=500,
