@@ -239,11 +239,11 @@ def renderer_init(name: str) -> str | None:
 
 def expected_minutes(cfg: FitConfig, frames: int) -> tuple[float, str]:
     """Rough wall time of a fit of ``frames`` frames and what it is made of (printed at the start)."""
+    from renderer.preset import get_preset
+
     track = frames * TRACK_S_PER_FRAME / 60
     tracking = f"tracking about {track:.0f} min" if track >= 0.5 else "tracking under a minute"
     register = frames * REGISTER_S_PER_FRAME / 60
-    from renderer.preset import get_preset
-
     train, steps = renderer_minutes(cfg), renderer_steps(cfg)
     per_step = None if cfg.device.startswith("cuda") else get_preset(cfg.preset).step_seconds
     if steps is not None and per_step is not None and (train is None or steps * per_step / 60 < train):
