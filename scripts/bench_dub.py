@@ -40,12 +40,15 @@ STAGES = {
 """Stage → (file, function) whose cumulative time is the stage's."""
 
 
-def child(audio: str, person: str, out: str, profile: bool = False) -> None:
+def child(audio: str, person: str, out: str, profile: bool = False, glibc_defaults: bool = False) -> None:
     import cProfile
     import pstats
 
+    from nvp.allocator import keep_freed_memory
     from nvp.app.dub import dub
 
+    if not glibc_defaults:  # as the CLI sets it
+        keep_freed_memory()
     prof = cProfile.Profile() if profile else None
     t0 = time.perf_counter()
     if prof:
@@ -75,9 +78,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--size", type=int, default=512, help="demo target's frame size without --person")
     ap.add_argument("--child", nargs=3, help=argparse.SUPPRESS)
     ap.add_argument("--profile", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument(
+        "--glibc-defaults",
+        action="store_true",
+        help="leave glibc's allocator as it comes (nvp keeps freed memory, nvp/allocator.py): for comparing",
+    )
     args = ap.parse_args(argv)
     if args.child:
-        child(*args.child, profile=args.profile)
+        child(*args.child, profile=args.profile, glibc_defaults=args.glibc_defaults)
         return 0
     import numpy as np
     import soundfile as sf
@@ -99,6 +107,7 @@ def main(argv: list[str] | None = None) -> int:
 
         def run(*extra: str, env: dict | None = None) -> dict:
             cmd = [sys.executable, __file__, "--child", str(wav), str(person), str(tmp / "dub.mp4"), *extra]
+            cmd += ["--glibc-defaults"] if args.glibc_defaults else []
             proc = subprocess.run(cmd, capture_output=True, text=True, check=True, env=env)
             return json.loads(proc.stdout.strip().splitlines()[-1])
 

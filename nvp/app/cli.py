@@ -862,8 +862,10 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(message)s"
     )
+    from nvp.allocator import keep_freed_memory
     from nvp.errors import NvpError
 
+    keep_freed_memory()
     try:
         return args.func(args)
     except NvpError as e:
