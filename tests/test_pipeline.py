@@ -539,3 +539,5 @@ def test_a_fit_without_flags_ends_on_its_own_and_says_how_long_it_takes():
     assert "renderer training 7 min" in expected_minutes(FitConfig(steps=3600, budget_minutes=7), 3000)[1]
     assert "for 500 steps" in expected_minutes(FitConfig(steps=500, device="cuda"), 3000)[1]
     assert "tracking under a minute" in expected_minutes(FitConfig(), 500)[1]
+    short = expected_minutes(FitConfig(steps=20), 250)[1]  # a trial fit: no "about 0 min"
+    assert short == "tracking under a minute, renderer training under a minute (20 steps)"

@@ -98,7 +98,7 @@ def fit(
     if progress:
         total, parts = expected_minutes(cfg, info.num_frames)
         print(
-            f"nvp fit: expect about {total:.0f} minutes ({parts}); an interrupted fit resumes",
+            f"nvp fit: expect {about_minutes(total)} ({parts}); an interrupted fit resumes",
             file=sys.stderr,
         )
     if builder.restarted:
@@ -237,12 +237,17 @@ def renderer_init(name: str) -> str | None:
     return None if name == "scratch" else name
 
 
+def about_minutes(minutes: float) -> str:
+    """``minutes`` as a fit announces them: "about 12 min", "under a minute"."""
+    return f"about {minutes:.0f} min" if minutes >= 0.5 else "under a minute"
+
+
 def expected_minutes(cfg: FitConfig, frames: int) -> tuple[float, str]:
     """Rough wall time of a fit of ``frames`` frames and what it is made of (printed at the start)."""
     from renderer.preset import get_preset
 
     track = frames * TRACK_S_PER_FRAME / 60
-    tracking = f"tracking about {track:.0f} min" if track >= 0.5 else "tracking under a minute"
+    tracking = f"tracking {about_minutes(track)}"
     register = frames * REGISTER_S_PER_FRAME / 60
     train, steps = renderer_minutes(cfg), renderer_steps(cfg)
     per_step = None if cfg.device.startswith("cuda") else get_preset(cfg.preset).step_seconds
@@ -251,7 +256,7 @@ def expected_minutes(cfg: FitConfig, frames: int) -> tuple[float, str]:
         train = steps * per_step / 60
         return (
             track + train + register + 1,
-            f"{tracking}, renderer training about {train:.0f} min ({steps:,} steps{limit})",
+            f"{tracking}, renderer training {about_minutes(train)} ({steps:,} steps{limit})",
         )
     if train is None:
         return track + register, f"{tracking}, then renderer training for {steps:,} steps"
