@@ -1,13 +1,13 @@
 """Keeping freed memory in the process instead of handing it back to the system after every frame.
 
 Every rendered frame allocates and frees the same few dozen arrays of 0.1-3 MB (crops, maps at footage
-resolution, the paste's region). With glibc's defaults the freed top of the heap is given back to the
-system (``M_TRIM_THRESHOLD``, 128 kB at first) and the next frame's arrays fault their pages in again: at
-1080p a torch or OpenCV read of 0.2 ms took 1.1 ms that way, and two render threads faulting pages at once
+resolution, the paste's region). With glibc's defaults the freed top of the heap is given back to the system
+(``M_TRIM_THRESHOLD``, 128 kB at first) and the next frame's arrays fault their pages in again: an OpenCV read
+of a 1080p paste's maps that takes 0.2 ms took 1.1 ms that way, and two render threads faulting pages at once
 wait on each other in the kernel. :func:`keep_freed_memory` raises the trim threshold to 1 GB and serves
-requests below 32 MB (glibc's largest threshold) from the heap; peak memory stays what the job needs
-(the freed arrays are reused by the next frame). Measured with ``scripts/bench_dub.py`` in the closing
-notes and the README's speed section.
+requests below 32 MB (glibc's largest threshold) from the heap; peak memory stays what the job needs (the
+freed arrays are reused by the next frame). Measured with ``scripts/bench_dub.py`` in the closing notes and
+the README's speed section.
 """
 
 from __future__ import annotations
