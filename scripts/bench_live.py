@@ -36,8 +36,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=20.0, help="play this much of it")
     ap.add_argument("--busy", action="store_true", help="keep one core busy with another process")
     ap.add_argument("--max-lag", type=float, default=1.0)
+    ap.add_argument(
+        "--glibc-defaults",
+        action="store_true",
+        help="leave glibc's allocator as it comes (nvp keeps freed memory, nvp/allocator.py): for comparing",
+    )
     args = ap.parse_args(argv)
     import soundfile as sf
+
+    from nvp.allocator import keep_freed_memory
+
+    if not args.glibc_defaults:  # as the CLI sets it
+        keep_freed_memory()
 
     from nvp.app.dub import load_person
     from nvp.app.live import live
