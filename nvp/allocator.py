@@ -26,8 +26,8 @@ MMAP_THRESHOLD = 32 << 20
 
 
 def keep_freed_memory() -> bool:
-    """Set glibc's allocator to keep freed memory (see the module); False where it is not glibc's (macOS,
-    musl) or refuses, and nothing changes."""
+    """Set glibc's allocator to keep freed memory (see the module); False where the C library is not glibc
+    (macOS, musl: nothing is changed) or glibc refuses a value."""
     if not sys.platform.startswith("linux"):
         return False
     try:

@@ -40,15 +40,30 @@ STAGES = {
 """Stage → (file, function) whose cumulative time is the stage's."""
 
 
+def allocator_option(ap: argparse.ArgumentParser) -> None:
+    """``--glibc-defaults`` of the benchmarks that run nvp in their own process (:func:`set_allocator`)."""
+    ap.add_argument(
+        "--glibc-defaults",
+        action="store_true",
+        help="leave glibc's allocator as it comes (nvp keeps freed memory, nvp/allocator.py): for comparing",
+    )
+
+
+def set_allocator(glibc_defaults: bool) -> None:
+    """Keep freed memory as the CLI does, unless ``--glibc-defaults``."""
+    from nvp.allocator import keep_freed_memory
+
+    if not glibc_defaults:
+        keep_freed_memory()
+
+
 def child(audio: str, person: str, out: str, profile: bool = False, glibc_defaults: bool = False) -> None:
     import cProfile
     import pstats
 
-    from nvp.allocator import keep_freed_memory
     from nvp.app.dub import dub
 
-    if not glibc_defaults:  # as the CLI sets it
-        keep_freed_memory()
+    set_allocator(glibc_defaults)
     prof = cProfile.Profile() if profile else None
     t0 = time.perf_counter()
     if prof:
@@ -78,11 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--size", type=int, default=512, help="demo target's frame size without --person")
     ap.add_argument("--child", nargs=3, help=argparse.SUPPRESS)
     ap.add_argument("--profile", action="store_true", help=argparse.SUPPRESS)
-    ap.add_argument(
-        "--glibc-defaults",
-        action="store_true",
-        help="leave glibc's allocator as it comes (nvp keeps freed memory, nvp/allocator.py): for comparing",
-    )
+    allocator_option(ap)
     args = ap.parse_args(argv)
     if args.child:
         child(*args.child, profile=args.profile, glibc_defaults=args.glibc_defaults)

@@ -21,6 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_dub import allocator_option, set_allocator  # noqa: E402
+
 
 def _spin(stop) -> None:
     x = 0
@@ -36,18 +39,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=20.0, help="play this much of it")
     ap.add_argument("--busy", action="store_true", help="keep one core busy with another process")
     ap.add_argument("--max-lag", type=float, default=1.0)
-    ap.add_argument(
-        "--glibc-defaults",
-        action="store_true",
-        help="leave glibc's allocator as it comes (nvp keeps freed memory, nvp/allocator.py): for comparing",
-    )
+    allocator_option(ap)
     args = ap.parse_args(argv)
+    set_allocator(args.glibc_defaults)
     import soundfile as sf
-
-    from nvp.allocator import keep_freed_memory
-
-    if not args.glibc_defaults:  # as the CLI sets it
-        keep_freed_memory()
 
     from nvp.app.dub import load_person
     from nvp.app.live import live
