@@ -629,6 +629,9 @@ class VideoWriter:
     (x264 ``zerolatency``: no frame is held back), so players can read the file while it grows; audio
     then arrives with :meth:`add_audio` (``audio`` gives only its channels, e.g. an empty ``(0,)`` array).
     :meth:`abort` then finishes the file instead of deleting it: what was streamed stays playable.
+
+    ``template``: a file written by another writer of the same size and rate; then no frame is encoded,
+    :meth:`append` copies such files' video one after the other (a long job's resumable parts).
     """
 
     def __init__(
@@ -642,6 +645,7 @@ class VideoWriter:
         crf: int = 18,
         metadata: dict[str, str] | None = None,
         live: bool = False,
+        template: str | os.PathLike[str] | None = None,
     ) -> None:
         if width <= 0 or height <= 0:
             raise ValueError(f"width and height must be positive, got {width}x{height}")
@@ -661,6 +665,7 @@ class VideoWriter:
         self._closed = False
         self._reformatter = VideoReformatter()
         self.live = live
+        self._template = None
 
         target = Path(self.path)
         suffix = target.suffix or ".mp4"
@@ -685,16 +690,20 @@ class VideoWriter:
         try:
             for key, value in (metadata or {}).items():
                 self._container.metadata[str(key)] = str(value)
-            vs = self._container.add_stream("libx264", rate=self.fps, options=x264)
-            vs.width = self.width + self._pad_w
-            vs.height = self.height + self._pad_h
-            vs.pix_fmt = "yuv420p"
-            cc = vs.codec_context
-            cc.time_base = 1 / self.fps
-            cc.colorspace = _AVCOL_BT709
-            cc.color_primaries = _AVCOL_BT709
-            cc.color_trc = _AVCOL_BT709
-            cc.color_range = _AVCOL_RANGE_MPEG
+            if template is None:
+                vs = self._container.add_stream("libx264", rate=self.fps, options=x264)
+                vs.width = self.width + self._pad_w
+                vs.height = self.height + self._pad_h
+                vs.pix_fmt = "yuv420p"
+                cc = vs.codec_context
+                cc.time_base = 1 / self.fps
+                cc.colorspace = _AVCOL_BT709
+                cc.color_primaries = _AVCOL_BT709
+                cc.color_trc = _AVCOL_BT709
+                cc.color_range = _AVCOL_RANGE_MPEG
+            else:  # parts encoded beforehand are copied (:meth:`append`), with the template's parameters
+                self._template = av.open(os.fspath(template))
+                vs = self._container.add_stream_from_template(self._template.streams.video[0])
             self._vstream = vs
             self._astream = None
             if self._audio is not None:
@@ -742,8 +751,8 @@ class VideoWriter:
             ValueError: wrong shape or dtype, or the writer is closed.
             MediaError: the encoder or muxer failed.
         """
-        if self._closed:
-            raise ValueError(f"VideoWriter for '{self.path}' is closed")
+        if self._closed or self._template is not None:
+            raise ValueError(f"VideoWriter for '{self.path}' is closed or copies parts (append)")
         expected = (self.height, self.width, 3)
         if not isinstance(frame, np.ndarray) or frame.shape != expected:
             found = frame.shape if isinstance(frame, np.ndarray) else type(frame).__name__
@@ -766,6 +775,32 @@ class VideoWriter:
                 self._write_audio(end, final=False)
         except _AV_ERRORS as exc:
             self._raise_write_error(exc, f"encoding frame {self.num_frames} failed")
+
+    def append(self, part: str | os.PathLike[str]) -> None:
+        """Append the video of ``part``, a file another writer made with the same size and rate (the
+        writer's ``template`` is one of them), without encoding it again: its packets are copied, their
+        times moved to follow the frames written so far. The audio is encoded alongside as with
+        :meth:`write`."""
+        if self._closed or self._template is None:
+            raise ValueError(f"VideoWriter for '{self.path}' is closed or encodes frames (write)")
+        try:
+            with av.open(os.fspath(part)) as src:
+                stream = src.streams.video[0]
+                packets = [pk for pk in src.demux(stream) if pk.size > 0]
+                if not packets:
+                    raise MediaError(f"cannot append '{part}' to '{self.path}': it holds no frames")
+                ticks = Fraction(1) / (self.fps * stream.time_base)  # per frame, in the part's time base
+                shift = round(self.num_frames * ticks) - min(pk.pts for pk in packets)
+                for pk in packets:
+                    pk.pts += shift
+                    pk.dts += shift
+                    pk.stream = self._vstream
+                    self._container.mux(pk)
+            self.num_frames += len(packets)
+            if self._astream is not None:
+                self._write_audio(int(Fraction(self.num_frames * self._audio_rate) / self.fps), final=False)
+        except _AV_ERRORS as exc:
+            self._raise_write_error(exc, f"copying {part} failed")
 
     def add_audio(self, samples: np.ndarray) -> None:
         """Append audio (``(n,)`` or ``(n, channels)``, the channels given at creation) to the track; it is
@@ -823,7 +858,8 @@ class VideoWriter:
 
     def _finish(self) -> None:
         """Flush the encoders (audio trimmed or padded to the video's length) and close the container."""
-        self._container.mux(self._vstream.encode(None))
+        if self._template is None:
+            self._container.mux(self._vstream.encode(None))
         if self._astream is not None and self._audio is not None:
             total = round(Fraction(self.num_frames * self._audio_rate) / self.fps)
             given = self._audio_base + self._audio.shape[1]
@@ -838,6 +874,8 @@ class VideoWriter:
             self._write_audio(total, final=True)
             self._container.mux(self._astream.encode(None))
         self._container.close()
+        if self._template is not None:
+            self._template.close()
 
     def _raise_write_error(self, exc: BaseException, what: str) -> None:
         if is_disk_full(exc):
@@ -860,6 +898,8 @@ class VideoWriter:
             self._closed = True
             try:
                 self._container.close()
+                if self._template is not None:
+                    self._template.close()
             except Exception:  # the file is deleted anyway
                 logger.debug("error while closing aborted writer for %s", self.path, exc_info=True)
         try:

@@ -629,6 +629,8 @@ def render_frames(
     desc: str = "render",
     workers: int | None = None,
     sources: Callable[[int], tuple[np.ndarray, int, np.ndarray]] | None = None,
+    start_entries: Mapping[str, int | None] | None = None,
+    decided: list[dict[str, int | None]] | None = None,
 ) -> Iterator[tuple[np.ndarray, dict[str, np.ndarray]]]:
     """The one render loop: footage ``frames`` (``(H, W, 3)`` uint8, one per entry of ``indices``, the
     footage frame each one is) in; for each, in order, the footage frame and its renders
@@ -641,6 +643,9 @@ def render_frames(
     evaluation that must not move the real frame's own detail onto its re-creation. With a mouth bank,
     each variant's open mouths get their bank entries from an :class:`renderer.mouths.EntryChooser` over
     :meth:`FrameRenderer.entry_costs` (:data:`MOUTH_LAG` frames ahead), so the teeth do not flicker.
+    ``start_entries``: each variant's entry of the frame before the first (a resumed job then chooses as
+    an uninterrupted one would); ``decided``, when given, receives every frame's entries, in order, before
+    the frame is yielded.
 
     On the CPU, ``workers`` frames are rendered at once, each by its own thread and renderer
     (:meth:`FrameRenderer.twin`) on one PyTorch thread, while the caller consumes (encodes) the previous
@@ -659,6 +664,8 @@ def render_frames(
     n = 1 if str(fr.device) != "cpu" else (workers or frame_workers())
     bar = tqdm(total=len(indices), desc=desc, unit="frame", disable=not progress)
     choosers = {name: EntryChooser(MOUTH_LAG) for name in variants} if fr.mouths is not None else None
+    for name, chooser in (choosers or {}).items():
+        chooser.current = (start_entries or {}).get(name)
 
     def prepare(renderer: FrameRenderer, j: int, k: int, frame: np.ndarray) -> dict[str, tuple]:
         tracked = renderer.tracked(k)
@@ -697,6 +704,8 @@ def render_frames(
             for entries in zip(*fixed.values(), strict=True):
                 frame, prepared = waiting.popleft()
                 chosen = dict(zip(variants, entries, strict=True))
+                if decided is not None:
+                    decided.append(chosen)
                 pasting.append((frame, pool.submit(composite(prepared, chosen))))
 
         def done(limit: int) -> Iterator[tuple[np.ndarray, dict[str, np.ndarray]]]:

@@ -457,3 +457,42 @@ def test_disk_full_while_writing_a_video_names_the_file(tmp_path, monkeypatch):
     with pytest.raises(DiskFullError, match=f"disk full while writing {out}"):
         w.write(np.zeros((32, 32, 3), np.uint8))
     assert not out.exists() and not list(tmp_path.glob(".*tmp*"))
+
+
+def test_writer_joins_parts_without_encoding_them_again(tmp_path: Path) -> None:
+    rng = np.random.default_rng(0)
+    frames = [rng.integers(0, 256, (48, 64, 3), dtype=np.uint8) for _ in range(23)]
+    parts = []
+    for i, (a, b) in enumerate([(0, 10), (10, 20), (20, 23)]):
+        parts.append(tmp_path / f"part{i}.mp4")
+        with VideoWriter(parts[-1], 25, 64, 48) as vw:
+            for f in frames[a:b]:
+                vw.write(f)
+    out = tmp_path / "joined.mp4"
+    audio = tone(440, 1.0)
+    with VideoWriter(
+        out, 25, 64, 48, audio=audio, audio_rate=16000, metadata={"k": "v"}, template=parts[0]
+    ) as vw:
+        with pytest.raises(ValueError, match="append"):
+            vw.write(frames[0])
+        for p in parts:
+            vw.append(p)
+    info = probe_video(out)
+    assert info.num_frames == 23 and not info.variable_frame_rate and info.audio_sample_rate == 16000
+
+    def decoded(path: Path) -> list[np.ndarray]:
+        with av.open(str(path)) as c:
+            return [f.to_ndarray(format="rgb24") for f in c.decode(video=0)]
+
+    joined, separate = decoded(out), [f for p in parts for f in decoded(p)]
+    assert all(np.array_equal(a, b) for a, b in zip(joined, separate, strict=True))  # copied, not re-encoded
+    with av.open(str(out)) as c:
+        assert c.metadata["k"] == "v"
+        pts = [f.pts for f in c.decode(video=0)]
+        assert pts[0] == 0 and len(set(np.diff(pts))) == 1  # one frame after the other, evenly
+    assert len(read_audio(out, 16000)) == pytest.approx(23 / 25 * 16000, abs=1024)  # trimmed to the video
+    with VideoWriter(tmp_path / "x.mp4", 25, 64, 48, template=parts[0]) as vw:
+        (tmp_path / "empty.mp4").write_bytes(b"")
+        with pytest.raises(MediaError, match="empty.mp4"):
+            vw.append(tmp_path / "empty.mp4")
+        vw.append(parts[2])

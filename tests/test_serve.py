@@ -179,3 +179,15 @@ def test_bad_uploads_and_path_traversal_are_refused(make_client, tmp_path):
     assert status == 404
     status, err = c.json("DELETE", "/api/people/..")
     assert status == 404
+
+
+def test_the_parts_of_a_cancelled_or_failed_dub_are_removed(tmp_path):
+    from nvp.app.dub import parts_folder
+    from nvp.app.jobs import Job
+
+    out = tmp_path / "dubs" / "job-x.mp4"
+    for kind, state, kept in [("dub", "cancelled", False), ("say", "failed", False), ("dub", "done", True)]:
+        parts_folder(out).mkdir(parents=True, exist_ok=True)
+        (parts_folder(out) / "part-00000.mp4").write_bytes(b"x")
+        App._ended(Job("job-x", kind, "p-1", ["dub"], str(out), state=state))
+        assert parts_folder(out).exists() == kept

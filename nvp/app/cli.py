@@ -344,7 +344,9 @@ def _cmd_dub(args: argparse.Namespace) -> int:
         print(
             (f"[{i + 1}/{len(audios)}] " if several else "")
             + f"{r.frames} frames ({r.frames / r.fps:.2f} s for {r.audio_seconds:.2f} s of audio) in "
-            f"{r.seconds:.1f} s ({r.frames / r.seconds:.1f} frames/s) → {r.output}"
+            f"{r.seconds:.1f} s ({r.rendered / r.seconds:.1f} frames/s"
+            + ("" if r.rendered == r.frames else f"; resumed, {r.rendered} rendered now")
+            + f") → {r.output}"
         )
     if several:
         print(

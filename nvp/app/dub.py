@@ -4,11 +4,20 @@ audio → expressions of the person (``nvp.person.predict_expressions``) → tar
 backward as long as the audio lasts (head pose, eyes and blinks from the footage) → mouth from the audio
 → neural rendering composited into the footage (``renderer.render.render_frames``) → mp4 with the input
 audio, marked as synthetic.
+
+The video is encoded in parts of :data:`PART_FRAMES` frames, kept beside the output
+(``.<output name>.nvp-parts/``) until the dub is done and then joined without encoding again: a dub that
+is interrupted (even by ``kill -9``) resumes at its first unfinished part when the same command runs
+again, if the audio, the person bundle and the style are the same (else it starts again).
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import logging
+import shutil
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,10 +32,16 @@ from nvp.geometry import posed
 from nvp.tracked import TrackedSequence
 
 if TYPE_CHECKING:
+    from collections.abc import Iterator
+
     from nvp.audio2exp import Audio2ExpressionNet
     from nvp.person import PersonStyle
 
 log = logging.getLogger(__name__)
+
+PART_FRAMES = 250
+"""Frames per resumable part of a dub's video (10 s at 25 frames/s, x264's own keyframe interval, so the
+parts add few keyframes a single file would not have). Work lost to an interruption is at most one part."""
 
 
 def dubbed_vertices(
@@ -112,6 +127,8 @@ class DubResult:
     """``(T,)`` index of the target frame behind each output frame."""
     expression: np.ndarray
     """``(T, K_exp)`` expressions predicted from the audio."""
+    rendered: int
+    """Frames rendered by this call (fewer than ``frames`` when it resumed an interrupted dub)."""
 
 
 def dub(
@@ -128,7 +145,7 @@ def dub(
     file whose talking style drives the mouth (:func:`nvp.person.transferred_style`); ``details``: more
     provenance tags for the output (e.g. how its speech was made)."""
     from nvp.artifact import check_output_file
-    from nvp.media import VideoWriter, audio_rate, frames_at, read_audio
+    from nvp.media import audio_rate, frames_at, read_audio
     from nvp.person import predict_expressions
     from nvp.provenance import synthetic_mark
     from nvp.schedule import target_frame_indices
@@ -145,10 +162,10 @@ def dub(
     if len(mono) == 0 or not speech_activity(mono, rate):
         raise NvpError(f"{audio_path}: no speech found (silence, noise or music only, or too quiet)")
     person = load_person(bundle, style)
-    style, net, seq, model = person.style, person.net, person.tracked, person.model
+    net, seq, model = person.net, person.tracked, person.model
     duration = len(mono) / rate
     n_out = num_video_frames(duration, seq.fps)
-    expression = predict_expressions(mono, rate, seq.fps, style, net, num_frames=n_out)
+    expression = predict_expressions(mono, rate, seq.fps, person.style, net, num_frames=n_out)
     order = target_frame_indices(n_out, seq.num_frames)
     weights = model.mouth_weights()
 
@@ -161,13 +178,129 @@ def dub(
     )
     out = Path(output)
     out.parent.mkdir(parents=True, exist_ok=True)
-    with (
-        FrameRenderer(bundle.path("renderer"), model, seq, device) as fr,
-        VideoWriter(
-            out, seq.fps, seq.width, seq.height, audio=original, audio_rate=rate, metadata=tags
-        ) as vw,
-    ):
-        frames = frames_at(bundle.path("target"), order, seq.fps)
-        for _, made in render_frames(fr, frames, order, {"dub": spoken}, progress, "dub"):
-            vw.write(made["dub"])
-    return DubResult(out, n_out, seq.fps, duration, time.perf_counter() - t_start, order, expression)
+    parts = DubParts(out, _resume_key(audio_path, bundle, style, n_out))
+    first = parts.finished * PART_FRAMES
+    if parts.finished and progress:
+        print(f"nvp dub: resuming {out.name} at frame {first} of {n_out}", file=sys.stderr)
+    if first < n_out:
+        with FrameRenderer(bundle.path("renderer"), model, seq, device) as fr:
+            rest = order[first:]
+            frames = frames_at(bundle.path("target"), rest, seq.fps)
+            decided: list[dict[str, int | None]] = []
+            made_frames = render_frames(
+                fr,
+                frames,
+                rest,
+                {"dub": lambda j, k, tracked: spoken(first + j, k, tracked)},
+                progress,
+                "dub",
+                start_entries=parts.entries,
+                decided=decided,
+            )
+            parts.write(made_frames, decided, seq)
+    parts.join(out, seq, audio=original, audio_rate=rate, metadata=tags)
+    seconds = time.perf_counter() - t_start
+    return DubResult(out, n_out, seq.fps, duration, seconds, order, expression, n_out - first)
+
+
+def _resume_key(audio_path: str | Path, bundle: PersonBundle, style: str | Path | None, frames: int) -> dict:
+    """What a resumed dub must share with the interrupted one: nvp's version, the audio's and the style's
+    content, the person bundle's manifest (its input, settings and stages) and the parts' length."""
+    from nvp import __version__
+    from nvp.artifact import file_sha256
+
+    def manifest_sha(b: PersonBundle) -> str:
+        return hashlib.sha256(json.dumps(b.manifest, sort_keys=True).encode()).hexdigest()
+
+    if style is None:
+        style_sha = None
+    elif Path(style).is_dir():
+        style_sha = manifest_sha(PersonBundle.load(style))
+    else:
+        style_sha = file_sha256(Path(style))
+    return {
+        "nvp": __version__,
+        "audio_sha256": file_sha256(Path(audio_path)),
+        "person_sha256": manifest_sha(bundle),
+        "style_sha256": style_sha,
+        "frames": frames,
+        "part_frames": PART_FRAMES,
+    }
+
+
+def parts_folder(output: Path) -> Path:
+    """Where the finished parts of a dub to ``output`` wait until it is done."""
+    return output.with_name(f".{output.name}.nvp-parts")
+
+
+class DubParts:
+    """The finished parts of a dub to ``output`` of ``frames`` frames, in ``.<output name>.nvp-parts/``
+    beside it: ``key.json`` (:func:`_resume_key`), ``part-NNNNN.mp4`` and ``part-NNNNN.json`` (the
+    mouth-bank entries of the part's last frame, where the next part's choice goes on). Parts made for
+    another key are discarded; ``finished`` parts are there, ``entries`` those the next part starts from."""
+
+    def __init__(self, output: Path, key: dict) -> None:
+        from nvp.artifact import write_json
+
+        self.root, self.frames = parts_folder(output), int(key["frames"])
+        self.finished, self.entries = 0, None
+        key_file = self.root / "key.json"
+        if self.root.exists() and not key_file.exists():
+            raise NvpError(f"{self.root} exists and was not made by nvp dub; move it away first")
+        if key_file.exists():
+            try:
+                same = json.loads(key_file.read_text()) == key
+            except (OSError, ValueError):
+                same = False
+            if not same:
+                log.warning("%s held an interrupted dub of other input; starting again", output)
+                shutil.rmtree(self.root)
+        if not self.root.exists():
+            write_json(key_file, key)
+        while self._video(self.finished).exists() and self._notes(self.finished).exists():
+            self.finished += 1
+        if self.finished:
+            self.entries = json.loads(self._notes(self.finished - 1).read_text())["entries"]
+
+    def _video(self, part: int) -> Path:
+        return self.root / f"part-{part:05d}.mp4"
+
+    def _notes(self, part: int) -> Path:
+        return self.root / f"part-{part:05d}.json"
+
+    def write(
+        self,
+        made: Iterator[tuple[np.ndarray, dict[str, np.ndarray]]],
+        decided: list[dict[str, int | None]],
+        seq: TrackedSequence,
+    ) -> None:
+        """Encodes the frames after the finished parts (``made`` by :func:`renderer.render.render_frames`,
+        which fills ``decided`` with their entries) part after part; a part is finished once its video is
+        complete and its last frame's entries are recorded."""
+        from nvp.artifact import write_json
+        from nvp.media import VideoWriter
+
+        first, writer = self.finished * PART_FRAMES, None
+        try:
+            for j, (_, made_frame) in enumerate(made, start=first):
+                if writer is None:
+                    writer = VideoWriter(self._video(j // PART_FRAMES), seq.fps, seq.width, seq.height)
+                writer.write(made_frame["dub"])
+                if (j + 1) % PART_FRAMES == 0 or j + 1 == self.frames:
+                    writer.close()
+                    writer = None
+                    write_json(self._notes(j // PART_FRAMES), {"entries": decided[j - first]})
+        finally:
+            if writer is not None:
+                writer.abort()
+
+    def join(self, output: Path, seq: TrackedSequence, **audio_and_tags) -> None:
+        """Writes ``output`` (atomically): the parts' video, copied, with the audio and tags
+        (:class:`nvp.media.VideoWriter`'s keywords); then the parts go."""
+        from nvp.media import VideoWriter
+
+        videos = [self._video(i) for i in range(-(-self.frames // PART_FRAMES))]
+        with VideoWriter(output, seq.fps, seq.width, seq.height, template=videos[0], **audio_and_tags) as vw:
+            for video in videos:
+                vw.append(video)
+        shutil.rmtree(self.root, ignore_errors=True)

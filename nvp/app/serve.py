@@ -69,8 +69,17 @@ class App:
         self._names_path = self.data / "people.json"
         self._lock = threading.Lock()
         self._marks: dict[str, str] = {}
-        self.worker = Worker(self.store, self.data)
+        self.worker = Worker(self.store, self.data, on_done=self._ended)
         self.requeued = self.worker.recover()
+
+    @staticmethod
+    def _ended(job: Job) -> None:
+        """A dub that was cancelled or failed is not run again: the parts it finished (kept for resuming
+        after a server restart, :mod:`nvp.app.dub`) go."""
+        from nvp.app.dub import parts_folder
+
+        if job.kind in ("dub", "say") and job.state in ("cancelled", "failed"):
+            shutil.rmtree(parts_folder(Path(job.output)), ignore_errors=True)
 
     # -- people
 
