@@ -793,7 +793,8 @@ class VideoWriter:
                 shift = round(self.num_frames * ticks) - min(pk.pts for pk in packets)
                 for pk in packets:
                     pk.pts += shift
-                    pk.dts += shift
+                    if pk.dts is not None:
+                        pk.dts += shift
                     pk.stream = self._vstream
                     self._container.mux(pk)
             self.num_frames += len(packets)

@@ -401,6 +401,16 @@ def test_an_interrupted_dub_resumes_at_its_first_unfinished_part(bundle, tmp_pat
     monkeypatch.setattr(VideoWriter, "write", write)
     r = dubbing.dub(other, bundle, out, progress=False)
     assert r.rendered == r.frames and "interrupted dub of other input" in caplog.text
+
+    # a dub that fails before its first part leaves no folder behind
+    def no_renderer(*args, **kwargs):
+        raise OSError("no OpenGL context")
+
+    monkeypatch.setattr("renderer.render.FrameRenderer.__init__", no_renderer)
+    with pytest.raises(OSError, match="OpenGL"):
+        dubbing.dub(audio, bundle, out, progress=False)
+    assert not parts.exists()
+    monkeypatch.undo()
     # a folder of that name that nvp did not make is left alone
     parts.mkdir()
     (parts / "notes.txt").write_text("mine")

@@ -240,9 +240,7 @@ class DubParts:
     another key are discarded; ``finished`` parts are there, ``entries`` those the next part starts from."""
 
     def __init__(self, output: Path, key: dict) -> None:
-        from nvp.artifact import write_json
-
-        self.root, self.frames = parts_folder(output), int(key["frames"])
+        self.root, self.key, self.frames = parts_folder(output), key, int(key["frames"])
         self.finished, self.entries = 0, None
         key_file = self.root / "key.json"
         if self.root.exists() and not key_file.exists():
@@ -255,8 +253,6 @@ class DubParts:
             if not same:
                 log.warning("%s held an interrupted dub of other input; starting again", output)
                 shutil.rmtree(self.root)
-        if not self.root.exists():
-            write_json(key_file, key)
         while self._video(self.finished).exists() and self._notes(self.finished).exists():
             self.finished += 1
         if self.finished:
@@ -280,6 +276,8 @@ class DubParts:
         from nvp.artifact import write_json
         from nvp.media import VideoWriter
 
+        if not (self.root / "key.json").exists():  # made only now: a dub that fails before leaves nothing
+            write_json(self.root / "key.json", self.key)
         first, writer = self.finished * PART_FRAMES, None
         try:
             for j, (_, made_frame) in enumerate(made, start=first):
