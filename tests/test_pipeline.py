@@ -411,6 +411,10 @@ def test_an_interrupted_dub_resumes_at_its_first_unfinished_part(bundle, tmp_pat
         dubbing.dub(audio, bundle, out, progress=False)
     assert not parts.exists()
     monkeypatch.undo()
+    # one holding only the temporary key of a dub killed as it began is nvp's own
+    parts.mkdir()
+    (parts / ".key.json.123.tmp.json").write_text("{")
+    assert dubbing.dub(audio, bundle, out, progress=False).rendered == 43 and not parts.exists()
     # a folder of that name that nvp did not make is left alone
     parts.mkdir()
     (parts / "notes.txt").write_text("mine")

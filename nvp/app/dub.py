@@ -244,7 +244,9 @@ class DubParts:
         self.finished, self.entries = 0, None
         key_file = self.root / "key.json"
         if self.root.exists() and not key_file.exists():
-            raise NvpError(f"{self.root} exists and was not made by nvp dub; move it away first")
+            if any(not f.name.startswith(".") for f in self.root.iterdir()):
+                raise NvpError(f"{self.root} exists and was not made by nvp dub; move it away first")
+            shutil.rmtree(self.root)  # a dub killed while it wrote its key left a temporary file only
         if key_file.exists():
             try:
                 same = json.loads(key_file.read_text()) == key
