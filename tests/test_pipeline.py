@@ -342,15 +342,9 @@ def test_a_killed_dub_leaves_no_temporary_file_behind(bundle, tmp_path):
 
 
 def test_an_interrupted_dub_resumes_at_its_first_unfinished_part(bundle, tmp_path, monkeypatch, caplog):
-    import av
-
     from nvp.app import dub as dubbing
     from nvp.errors import NvpError
-    from nvp.media import VideoWriter
-
-    def decoded(path):
-        with av.open(str(path)) as c:
-            return [f.to_ndarray(format="rgb24") for f in c.decode(video=0)]
+    from nvp.media import VideoWriter, iter_frames
 
     monkeypatch.setenv("NVP_THREADS", "1")  # the same arithmetic in every run
     monkeypatch.setattr(dubbing, "PART_FRAMES", 10)
@@ -392,7 +386,7 @@ def test_an_interrupted_dub_resumes_at_its_first_unfinished_part(bundle, tmp_pat
     r = dubbing.dub(audio, bundle, out, progress=False)
     assert (r.frames, r.rendered) == (43, 13) and not parts.exists()
     # the same frames as the dub that ran through (the mouth-bank choice goes on where it stopped)
-    assert all(np.array_equal(a, b) for a, b in zip(decoded(out), decoded(whole.output), strict=True))
+    assert all(np.array_equal(a, b) for a, b in zip(iter_frames(out), iter_frames(whole.output), strict=True))
     assert np.array_equal(read_audio(out, 22050), read_audio(whole.output, 22050))
     # parts of other audio are not resumed
     interrupt(25)

@@ -168,10 +168,6 @@ def dub(
     expression = predict_expressions(mono, rate, seq.fps, person.style, net, num_frames=n_out)
     order = target_frame_indices(n_out, seq.num_frames)
     weights = model.mouth_weights()
-
-    def spoken(j: int, k: int, tracked: np.ndarray) -> np.ndarray:
-        return dubbed_vertices(model, seq, k, expression[j], weights, tracked)
-
     extra = {**(details or {}), **person.mark}
     tags = synthetic_mark(
         "dub", bundle=bundle.manifest.get("id", bundle.root.name), audio=Path(audio_path).name, **extra
@@ -182,6 +178,10 @@ def dub(
     first = parts.finished * PART_FRAMES
     if parts.finished and progress:
         print(f"nvp dub: resuming {out.name} at frame {first} of {n_out}", file=sys.stderr)
+
+    def spoken(j: int, k: int, tracked: np.ndarray) -> np.ndarray:  # j: from the first frame rendered now
+        return dubbed_vertices(model, seq, k, expression[first + j], weights, tracked)
+
     if first < n_out:
         with FrameRenderer(bundle.path("renderer"), model, seq, device) as fr:
             rest = order[first:]
@@ -191,7 +191,7 @@ def dub(
                 fr,
                 frames,
                 rest,
-                {"dub": lambda j, k, tracked: spoken(first + j, k, tracked)},
+                {"dub": spoken},
                 progress,
                 "dub",
                 start_entries=parts.entries,
