@@ -23,5 +23,5 @@ if __name__ == "__main__":
     model = default_face_model()
     train_set = [fake_sample(model, f"v{i}", i) for i in range(3)]
     val_set = [fake_sample(model, "val", 9)]
-    cfg = Audio2ExpTrainConfig(steps=60, batch=16, lr=3e-3, val_every=10, feature_noise=0.3, net=CFG)
+    cfg = Audio2ExpTrainConfig(steps=20, batch=16, lr=3e-3, val_every=5, feature_noise=0.3, net=CFG)
     train(train_set, val_set, model, cfg, Path(sys.argv[1]), progress=False)

@@ -224,11 +224,14 @@ def test_two_processes_under_torchrun_follow_the_one_process_run(tmp_path):
         ranks = [f"{p}:\n{p.read_text()[-1500:]}" for p in sorted((tmp_path / "ranks").rglob("*.log"))]
         assert proc.returncode == 0, f"{name}: {proc.stderr[-1500:]}\n" + "\n".join(ranks)
     logs = {k: json.loads((tmp_path / k / "log.json").read_text()) for k in runs}
-    assert [r["step"] for r in logs["one"]] == [r["step"] for r in logs["two"]] == list(range(10, 61, 10))
+    assert [r["step"] for r in logs["one"]] == [r["step"] for r in logs["two"]] == list(range(5, 21, 5))
     one = np.array([r["train_loss"] for r in logs["one"]])
     two = np.array([r["train_loss"] for r in logs["two"]])
     # same batches, each process half of each; the RMS loss is made from sums over both, so the loss and its
-    # gradient are the one-process ones: the curves agree up to float rounding
+    # gradient are the one-process ones: the curves agree up to float rounding. Adam amplifies a rounding
+    # difference about tenfold every 10 steps on this toy (measured with ATEN_CPU_CAPABILITY=default, whose
+    # unvectorised sums round like no other CPU's: 7e-8 at step 10, 3e-6 at 20, 3e-4 at 60), so the run is
+    # kept to 20 steps, where any CPU's rounding stays 30x below the tolerance and a wrong split is not
     np.testing.assert_allclose(two, one, rtol=1e-4)
     assert one[-1] < one[0]
     val = [np.array([r["mouth_error_iod"] for r in logs[k]]) for k in runs]
