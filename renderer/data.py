@@ -216,8 +216,8 @@ def transient_light(
     runs no longer than ``longest_s``. The networks learned faded frames as they were, and a dub of them,
     whose mouth is not the footage's, showed a violet or grey-blue mouth with a dark ring around it; without
     them the networks paint the face in the footage's usual light and the render's light match
-    (:func:`renderer.crop.colour_match`) puts it into the frame's (README: *Fades left out of the renderer's
-    training*)."""
+    (:func:`renderer.crop.colour_match`) puts it into the frame's (docs/experiments/renderer.md: *Fades
+    left out of the renderer's training*)."""
     off = np.zeros(len(frames), bool)
     known = np.isfinite(light).all(1)
     if not known.any():

@@ -11,7 +11,7 @@ the whole crop, its median over the face skin away from the lips (their shape is
 the mouth interior moves on its own); the head's translation is then moved so that its projection moves by
 that offset at the face's depth (:func:`registered`). On six videos (three test people), mouth-box PSNR
 +0.2-1.1 dB visually driven, up to +0.9 audio-driven and +0.4 in a dub, none on a 6-second clip whose
-renderer learned its frames by heart (README, *Heads where the renderer sees them*).
+renderer learned its frames by heart (docs/experiments/tracking.md, *Heads where the renderer sees them*).
 """
 
 from __future__ import annotations
