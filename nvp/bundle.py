@@ -157,13 +157,53 @@ def recover(root: Path) -> None:
         os.replace(old, root)  # killed after moving the old bundle aside, before the new one was ready
 
 
+def enclosing_bundle(path: str | Path) -> Path | None:
+    """The person bundle folder that holds ``path`` (its resolved path), or the folder a bundle is being
+    built in or replaced from; None when ``path`` is in no such folder."""
+    for folder in Path(path).resolve().parents:
+        building = folder.name.endswith(".partial") and (folder / PROGRESS).is_file()
+        if building or is_bundle(folder):
+            return folder
+    return None
+
+
+def check_output_place(output: str | Path, inputs: tuple[str | Path | None, ...] = ()) -> Path:
+    """Refuse an output path that would write over data it does not own: one of the ``inputs`` (compared
+    as resolved paths and as files, so links and ``..`` do not hide it), a path inside an input folder or
+    a folder holding an input, or a path inside a person bundle (whose files ``nvp fit`` made and
+    ``nvp info`` checks). ``None`` inputs are skipped. Returns ``output`` as a Path."""
+    out = Path(output)
+    where = out.resolve()
+    bundle = enclosing_bundle(where)
+    if bundle is not None:
+        raise NvpError(
+            f"the output {out} is inside the person bundle {bundle}; nvp keeps a bundle as nvp fit made it "
+            "(write the output elsewhere)"
+        )
+    for given in inputs:
+        if given is None:
+            continue
+        inp = Path(given)
+        here = inp.resolve()
+        same = where == here or (out.exists() and inp.exists() and os.path.samefile(out, inp))
+        if same:
+            raise NvpError(f"the output {out} is also an input ({inp}); choose another output name")
+        if here in where.parents:
+            raise NvpError(f"the output {out} is inside the input folder {inp}; choose a place outside it")
+        if where in here.parents:
+            raise NvpError(f"the output {out} holds the input {inp}; choose another output name")
+    return out
+
+
 def check_output_folder(root: Path, inputs: tuple[Path, ...] = ()) -> None:
     """Refuse an output that nvp would have to delete or overwrite without having made it: a file, one of
-    the ``inputs``, or a folder that is neither empty nor a person bundle."""
+    the ``inputs`` or a folder holding one, a folder inside a person bundle, or a folder that is neither
+    empty nor a person bundle."""
     root = Path(root)
     for p in inputs:
         if root.resolve() == Path(p).resolve():
             raise NvpError(f"the output {root} is the input video; choose a new folder for the person bundle")
+    check_output_place(root, inputs)
     if root.exists() and not root.is_dir():
         raise NvpError(f"the output {root} is a file; a person bundle is a folder (choose a new name)")
     if root.is_dir() and any(root.iterdir()) and not is_bundle(root):
@@ -238,6 +278,24 @@ class BundleBuilder:
         self._progress_path.unlink()  # from here on the partial folder is a complete bundle
         recover(self.root)  # the swap; a run killed in it is finished by the next one the same way
         return PersonBundle(self.root, m)
+
+
+def check_replacing(root: Path, input_sha256: str) -> None:
+    """Refuse to replace the person bundle at ``root`` when it was fitted from another video (the
+    ``input_sha256`` of this fit differs from the one it recorded); ``nvp fit --force`` skips this."""
+    root = Path(root)
+    if not is_bundle(root):
+        return
+    m = _read_bundle_manifest(root / MANIFEST)
+    if m.get("input_sha256") == input_sha256:
+        return  # the same video with other settings: fitting it again is what the user asks for
+    t = m.get("target") if isinstance(m.get("target"), dict) else {}
+    source = Path(str(t.get("source", "an unknown video"))).name
+    length = f", {t['duration_s']:.0f} s" if isinstance(t.get("duration_s"), (int, float)) else ""
+    raise NvpError(
+        f"{root} is the person bundle of another video ({source}{length}); this fit would replace it: "
+        "give --force to replace it, or choose another folder"
+    )
 
 
 def finished_bundle(root: Path, config: dict, input_sha256: str) -> PersonBundle | None:

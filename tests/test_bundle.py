@@ -205,3 +205,74 @@ def test_cached_tracking_made_with_other_tracker_settings_is_recomputed(demo_cli
     replace(first, info=stale).save(tmp_path / "cache" / "tracks" / corpus.cache_key(video))
     corpus.tracked_cached(video, tmp_path / "cache", progress=False)
     assert len(calls) == 2
+
+
+def run_cli(capsys, *args):
+    """``nvp -q ARGS`` in this process (faster than a subprocess): (exit code, stderr)."""
+    from nvp.app.cli import main
+
+    code = main(["-q", *map(str, args)])
+    return code, capsys.readouterr().err
+
+
+def assert_refused(result, *words):
+    code, err = result
+    assert code == 2, err
+    lines = [ln for ln in err.splitlines() if ln.startswith("nvp ")]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    for w in words:
+        assert w in lines[0], lines[0]
+
+
+def test_no_output_lands_on_an_input_or_inside_a_person_bundle(fitted, demo_clip, tmp_path, capsys):
+    p = copy_of(fitted, tmp_path)
+    before = {f: f.read_bytes() for f in p.rglob("*") if f.is_file()}
+    wav = tmp_path / "s.wav"
+    sf.write(wav, 0.3 * np.random.default_rng(0).standard_normal(16000).astype(np.float32), 16000)
+    (tmp_path / "link").symlink_to(p)
+    inside = "inside the person bundle"
+    assert_refused(run_cli(capsys, "dub", wav, "--person", p, "-o", p / "target.mp4"), inside)
+    assert_refused(run_cli(capsys, "dub", wav, "--person", p, "-o", p / "renderer" / "new.mp4"), inside)
+    assert_refused(run_cli(capsys, "dub", wav, "--person", p, "-o", tmp_path / "link" / "target.mp4"), inside)
+    assert_refused(run_cli(capsys, "dub", wav, wav.with_name("t.wav"), "--person", p, "-o", p), inside)
+    assert_refused(run_cli(capsys, "predict", wav, "--style", p, "-o", p / "x.npz"), inside)
+    assert_refused(run_cli(capsys, "say", "hello", "--person", p, "-o", p / "x.mp4"), inside)
+    assert_refused(
+        run_cli(capsys, "say", "hello", "--person", p, "-o", tmp_path / "x.mp4", "--wav", p / "s.wav")
+    )
+    assert_refused(run_cli(capsys, "fit", demo_clip.path, "-o", p / "sub", "--steps", 1), inside)
+    assert_refused(run_cli(capsys, "fit", p / "target.mp4", "-o", p, "--steps", 1), "holds the input")
+    lst = tmp_path / "list.txt"
+    lst.write_text("s.wav\n")
+    assert_refused(run_cli(capsys, "dub", "--list", lst, "--person", p, "-o", lst), "also an input")
+    assert lst.read_text() == "s.wav\n"
+    assert {f: f.read_bytes() for f in p.rglob("*") if f.is_file()} == before
+    assert sorted(tmp_path.iterdir()) == sorted([p, wav, tmp_path / "link", lst])
+
+
+def test_fit_refuses_to_replace_the_bundle_of_another_video_unless_forced(
+    fitted, demo_clip, tmp_path, capsys, monkeypatch
+):
+    from nvp.app import fit as app_fit
+
+    p = copy_of(fitted, tmp_path)
+    before = {f: f.read_bytes() for f in p.rglob("*") if f.is_file()}
+    other = tmp_path / "other.mp4"
+    other.write_bytes(demo_clip.path.read_bytes() + b"\0")  # another video, as far as its content goes
+    assert_refused(
+        run_cli(capsys, "fit", other, "-o", p, "--steps", 2), "another video", "clip.mp4", "--force"
+    )
+    assert {f: f.read_bytes() for f in p.rglob("*") if f.is_file()} == before
+    assert not partial_dir(p).exists()
+
+    class Building(Exception):
+        pass
+
+    def builder(*a, **k):
+        raise Building
+
+    monkeypatch.setattr(app_fit, "BundleBuilder", builder)
+    with pytest.raises(Building):  # --force goes on to build
+        app_fit.fit(other, p, app_fit.FitConfig(steps=2), progress=False, force=True)
+    with pytest.raises(Building):  # the same video with other settings is fitted again without --force
+        app_fit.fit(demo_clip.path, p, app_fit.FitConfig(steps=3), progress=False)

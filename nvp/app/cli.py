@@ -155,6 +155,10 @@ def _cmd_predict(args: argparse.Namespace) -> int:
     if args.output is None and args.export is None:
         raise NvpError("give -o (expressions .npz) and/or --export (animation .glb)")
     outputs = [check_output_file(p, inputs=(args.audio, args.style)) for p in (args.output, args.export) if p]
+    from nvp.bundle import check_output_place
+
+    for out in outputs:  # never over an input, nor inside a person bundle
+        check_output_place(out, (args.audio, args.style, args.mesh))
     if args.export is not None and args.export.suffix.lower() != ".glb":
         raise NvpError(f"--export writes binary glTF: name the file .glb, not {args.export.name}")
     model = default_face_model()
@@ -292,7 +296,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
         vgg_weights=str(args.vgg_weights) if args.vgg_weights else None,
         renderer_init=args.init,
     )
-    bundle = fit(args.video, args.output, cfg, progress=not args.quiet)
+    bundle = fit(args.video, args.output, cfg, progress=not args.quiet, force=args.force)
     st = bundle.manifest["stages"]
     total = sum(v.get("seconds", 0) for v in st.values())
     print(f"person bundle → {bundle.root} (fit took {total / 60:.1f} min)")
@@ -323,6 +327,11 @@ def _cmd_dub(args: argparse.Namespace) -> int:
         twice = sorted({x for x in stems if stems.count(x) > 1})
         if twice:
             raise NvpError(f"two audio files would both be written as {twice[0]}.mp4; rename one")
+    from nvp.bundle import check_output_place
+
+    for audio in audios:  # before any work: no output over an input, none inside a person bundle
+        out = Path(args.output) / f"{audio.stem}.mp4" if several else Path(args.output)
+        check_output_place(out, (*audios, args.list, args.person, args.style))
     failed = 0
     for i, audio in enumerate(audios):
         out = Path(args.output) / f"{audio.stem}.mp4" if several else Path(args.output)
@@ -379,6 +388,14 @@ def _cmd_say(args: argparse.Namespace) -> int:
     check_output_file(args.output)
     if args.wav is not None:
         check_output_file(args.wav)
+    from nvp.bundle import check_output_place
+    from nvp.errors import NvpError
+
+    for out in (args.output, args.wav):  # never over an input, nor inside a person bundle
+        if out is not None:
+            check_output_place(out, (args.person, args.style))
+    if args.wav is not None and Path(args.wav).resolve() == Path(args.output).resolve():
+        raise NvpError(f"-o and --wav both name {args.output}; give the speech another name")
     speech = synthesize(args.text, length_scale=args.slower, voice=args.voice, engine=args.engine)
     with tempfile.TemporaryDirectory() as tmp:
         wav = Path(tmp) / "speech.wav"
@@ -756,6 +773,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_device_arg(p)
     p.add_argument("--vgg-weights", type=Path, help="VGG-16 weights (torchvision .pth) for a perceptual loss")
+    p.add_argument(
+        "--force", action="store_true", help="replace a finished person bundle of another video at -o"
+    )
     p.set_defaults(func=_cmd_fit)
 
     p = sub.add_parser("dub", help="make a fitted person say new audio")

@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from nvp.bundle import PersonBundle
+from nvp.bundle import PersonBundle, check_output_place
 from nvp.errors import NvpError
 from nvp.face_model import FaceModel
 from nvp.geometry import posed
@@ -154,7 +154,7 @@ def dub(
     from renderer.render import FrameRenderer, render_frames
 
     t_start = time.perf_counter()
-    check_output_file(output, inputs=(audio_path,))
+    check_output_place(check_output_file(output, inputs=(audio_path,)), (audio_path, bundle_dir, style))
     bundle = PersonBundle.load(bundle_dir)
     rate = audio_rate(audio_path)
     original = read_audio(audio_path, None, mono=False)

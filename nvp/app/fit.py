@@ -67,11 +67,13 @@ def fit(
     cfg: FitConfig = FitConfig(),
     progress: bool = True,
     tracked: TrackedSequence | None = None,
+    force: bool = False,
 ) -> PersonBundle:
     """Build a person bundle from a talking-head video (1-3 minutes recommended).
 
-    ``tracked``: the video's tracking when the caller already has it (skips the tracking stage)."""
-    from nvp.bundle import check_output_folder, finished_bundle, input_hash
+    ``tracked``: the video's tracking when the caller already has it (skips the tracking stage);
+    ``force``: replace a finished bundle of another video at ``out`` (refused otherwise)."""
+    from nvp.bundle import check_output_folder, check_replacing, finished_bundle, input_hash
     from nvp.media import probe_video
 
     video, out = Path(video), Path(out)
@@ -94,6 +96,8 @@ def fit(
     if done is not None:
         log.warning("%s is already fitted from %s with these settings; reusing it", out, video.name)
         return done
+    if not force:
+        check_replacing(out, sha)
     builder = BundleBuilder(out, config, sha)
     if progress:
         total, parts = expected_minutes(cfg, info.num_frames)
