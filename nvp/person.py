@@ -32,11 +32,12 @@ if TYPE_CHECKING:
 WINDOW_BLOCK = 2048
 """Video frames whose feature windows :func:`predict_expressions` builds at a time (25 MB for phonemes)."""
 
-FORMAT_VERSION = 5
+FORMAT_VERSION = 6
 """2: the person's closed mouth (``closed``) for the network's closure head; 3: the opening calibration
 (:class:`OpeningStyle`); 4: the opening model corrected for the person (``OpeningStyle.adapted_weight``);
-5: where the opening model's output closes their lips (``OpeningStyle.closed_below``). Older files load
-without them."""
+5: where the opening model's output closes their lips (``OpeningStyle.closed_below``); 6: how they hold the
+mouth in pauses over time (``PersonStyle.pause_open`` / ``pause_close_after_s``). Older files load without
+them."""
 
 OPENING_WEIGHT = 0.75
 """Share of the generic opening model (:mod:`nvp.opening`) in the mouth opening, against the person map's
@@ -177,6 +178,11 @@ class PersonStyle:
         info: provenance (video, frames).
         opening: how the generic opening model's predictions enter (:class:`OpeningStyle`); None: the
             person map alone decides the opening.
+        pause_open: ``(K_exp,)`` the mouth early in a pause, before the lips rest (their pause frames above
+            the resting level, never wider than their speech); None: pauses rest at ``rest_expression``
+            throughout.
+        pause_close_after_s: seconds into a pause after which the lips rest at ``rest_expression`` (inf:
+            this person does not close them in pauses); see :func:`pause_rest`.
     """
 
     person_map: PersonMap
@@ -186,6 +192,24 @@ class PersonStyle:
     info: dict
     closed_expression: np.ndarray | None = None
     opening: OpeningStyle | None = None
+    pause_open: np.ndarray | None = None
+    pause_close_after_s: float = 0.0
+
+    def rest_track(self, voice: np.ndarray, fps: float) -> np.ndarray:
+        """``(T, K_exp)`` the mouth each frame rests towards, for voice activity ``voice`` ``(T,)``: the rest
+        mouth, or with :attr:`pause_open` that mouth until :attr:`pause_close_after_s` into each run of
+        unvoiced frames (``voice < 0.5``; causal, so a stream can use it) and the rest mouth after it,
+        with a two-frame ramp between."""
+        rest = np.broadcast_to(self.rest_expression, (len(voice), len(self.rest_expression)))
+        if self.pause_open is None:
+            return rest
+        since = np.zeros(len(voice))  # frames since the current unvoiced run began (0 while voiced)
+        run = 0
+        for t, v in enumerate(np.asarray(voice) < 0.5):
+            run = run + 1 if v else 0
+            since[t] = run
+        closing = np.clip((since - self.pause_close_after_s * fps) / 2.0, 0.0, 1.0)[:, None]
+        return (self.pause_open + closing * (self.rest_expression - self.pause_open)).astype(np.float32)
 
     def save(self, path: Path) -> Path:
         """Write ``path`` (.npz) and its ``.json`` manifest (:mod:`nvp.artifact`); returns the manifest."""
@@ -209,6 +233,9 @@ class PersonStyle:
             fields["opening"] = {k: getattr(op, k) for k in keys}
             if op.adapted_weight is not None:
                 arrays["opening_adapted_weight"] = op.adapted_weight
+        if self.pause_open is not None:
+            arrays["pause_open"] = self.pause_open
+            fields["pause_close_after_s"] = self.pause_close_after_s  # JSON: Infinity for never
         return save_artifact(path, "person_map", FORMAT_VERSION, arrays, fields)
 
     @classmethod
@@ -232,6 +259,8 @@ class PersonStyle:
             m.get("info", {}),
             a.get("closed"),
             opening,
+            a.get("pause_open"),
+            float(m.get("pause_close_after_s", 0.0)),
         )
 
 
@@ -257,16 +286,46 @@ def voiced_frames(video: Path, fps: float, num_frames: int) -> np.ndarray:
     return frame_speech_probability(audio, 16000, fps, num_frames) >= 0.5
 
 
-def pause_expression(expression: np.ndarray, voiced: np.ndarray, fps: float) -> np.ndarray | None:
-    """``(K_exp,)`` median expression of the frames in pauses (runs of ``PAUSE_MIN_S`` without voice) of
-    ``expression`` ``(T, K_exp)`` / ``voiced`` ``(T,)``: how this person holds the mouth between phrases;
-    None with fewer than ``PAUSE_MIN_FRAMES`` such frames."""
+def pause_rest(
+    expression: np.ndarray, gap: np.ndarray, voiced: np.ndarray, fps: float, gap_of
+) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """How this person holds the mouth in the pauses of their footage: ``(rest, open, close_after_s)``.
+
+    ``rest`` ``(K_exp,)``: the mean of their pause frames whose inner-lip gap is at or below their resting
+    level (:func:`nvp.metrics.closed_level` at 0.3), or their closed lips when fewer than 3 are;
+    ``open`` ``(K_exp,)``: the median of their other pause frames (``rest`` when fewer than 3), moved
+    towards ``rest`` until it is no wider than their median speaking gap; ``close_after_s``: the delay into
+    a pause after which the lips rest, chosen so that their pauses, resting from that delay on, would rest
+    as often as they do (inf when they never rest in a pause, 0 when they always do). None with fewer than
+    ``PAUSE_MIN_FRAMES`` pause frames. Args: ``expression`` ``(T, K_exp)``, ``gap`` ``(T,)``, ``voiced``
+    ``(T,)`` bool, ``gap_of``: inner-lip gaps ``(N,)`` of expressions ``(N, K_exp)``.
+    """
     from nvp.metrics import pause_mask
 
     pauses = pause_mask(voiced, fps, PAUSE_MIN_S)
     if pauses.sum() < PAUSE_MIN_FRAMES:
         return None
-    return np.median(expression[pauses], 0).astype(np.float32)
+    resting = gap <= closed_level(gap, 0.3)
+    shut, apart = pauses & resting, pauses & ~resting
+    rest = expression[shut].mean(0) if shut.sum() >= 3 else closed_mouth(expression, gap)
+    open_ = np.median(expression[apart], 0) if apart.sum() >= 3 else rest
+    speaking = np.median(gap[voiced & ~pauses] if np.any(voiced & ~pauses) else gap)
+    # never wider than their speech: the widest point on the way from rest to open that is not
+    steps = np.linspace(0.0, 1.0, 65)[:, None]
+    along = gap_of((rest + steps * (open_ - rest)).astype(np.float32))
+    fits = np.flatnonzero(along <= speaking)
+    open_ = rest + steps[fits[-1] if len(fits) else 0] * (open_ - rest)
+    # pause lengths in frames; the delay d rests sum(max(L - d, 0)) frames: match the resting share
+    edges = np.diff(np.concatenate([[0], pauses.astype(np.int8), [0]]))
+    lengths = np.flatnonzero(edges == -1) - np.flatnonzero(edges == 1)
+    target = shut.sum()
+    if target == 0:
+        delay = float("inf")
+    else:
+        ds = np.arange(int(lengths.max()) + 1)
+        rested = np.maximum(lengths[None] - ds[:, None], 0).sum(1)
+        delay = float(ds[np.argmin(np.abs(rested - target))]) / fps
+    return rest.astype(np.float32), np.asarray(open_, np.float32), delay
 
 
 RANGE_GAIN_MAX = 2.0
@@ -401,10 +460,12 @@ def style_from_sample(
     pmap = solve_person_map(audio_exp, expression, ridge)
     pmap, gain = range_calibrated(pmap, audio_exp, lambda e: model.inner_lip_gap(identity, e), gap, max_gain)
     rest, kind = rest_expression(expression, gap), "closed"
+    pause_open, close_after = None, 0.0
     if voiced is not None:
-        in_pause = pause_expression(expression, voiced[ok], sample.tracked.fps)
+        gap_of = lambda e: model.inner_lip_gap(identity, e)  # noqa: E731
+        in_pause = pause_rest(expression, gap, voiced[ok], sample.tracked.fps, gap_of)
         if in_pause is not None:
-            rest, kind = in_pause, "pauses"
+            (rest, pause_open, close_after), kind = in_pause, "pauses"
     closed = None
     if net.closure is not None:
         closed = closed_mouth(expression, gap, None if voiced is None else voiced[ok])
@@ -424,11 +485,23 @@ def style_from_sample(
             shut = float(np.mean(gap <= closed_level(gap)))
             calibration = replace(calibration, closed_below=float(np.quantile(z, shut)))
     info = {"video": sample.name, "frames": int(ok.sum()), "ridge": ridge, "rest": kind, "range_gain": gain}
+    if pause_open is not None:
+        info["pause_close_after_s"] = round(close_after, 3) if np.isfinite(close_after) else "never"
     if opening is not None:
         info["opening"] = "calibrated" if calibration is not None else "not used: no opening motion"
         if adaptation is not None:
             info["opening_adapted"] = adaptation
-    return PersonStyle(pmap, rest, manifest["feature_kind"], manifest["sha256"], info, closed, calibration)
+    return PersonStyle(
+        pmap,
+        rest,
+        manifest["feature_kind"],
+        manifest["sha256"],
+        info,
+        closed,
+        calibration,
+        pause_open,
+        close_after,
+    )
 
 
 def transferred_style(own: PersonStyle, other: PersonStyle) -> PersonStyle:
@@ -453,7 +526,15 @@ def transferred_style(own: PersonStyle, other: PersonStyle) -> PersonStyle:
     info = {**other.info, "style_of": other.info.get("video"), "face_of": own.info.get("video")}
     opening = None if other.opening is None else other.opening.shifted(shift)
     return PersonStyle(
-        pmap, own.rest_expression, other.feature_kind, other.audio2exp_sha256, info, closed, opening
+        pmap,
+        own.rest_expression,
+        other.feature_kind,
+        other.audio2exp_sha256,
+        info,
+        closed,
+        opening,
+        own.pause_open,
+        own.pause_close_after_s,
     )
 
 
@@ -471,6 +552,8 @@ def apply_style(
     voice: np.ndarray | None,
     ramp: tuple[float, float] = CLOSURE_RAMP,
     opening: np.ndarray | None = None,
+    text_closure: np.ndarray | None = None,
+    fps: float | None = None,
 ) -> np.ndarray:
     """Expression coefficients ``(T, K_exp)`` of a person from the generic network's outputs.
 
@@ -479,7 +562,10 @@ def apply_style(
     the opening model says the lips close (:meth:`OpeningStyle.closing`; for a style without a closing
     level: where the closure head's probabilities ``closure`` ``(T,)`` do, :func:`closure_weight` with
     ``ramp``), the mouth blends to the person's closed mouth; where ``voice`` ``(T,)`` in [0, 1] (see
-    :func:`nvp.vad.voice_activity`) is low, it blends to their rest mouth.
+    :func:`nvp.vad.voice_activity`) is low, it blends to their rest mouth as they hold it in pauses
+    (:meth:`PersonStyle.rest_track`, which needs the video frame rate ``fps``). ``text_closure`` ``(T,)`` in
+    [0, 1]: where a transcript says the lips close (:func:`nvp.transcript.bilabial_weights`); the mouth
+    blends to the closed mouth at least that much.
     """
     expr = style.person_map.apply(audio_exp)
     if style.opening is not None:
@@ -490,10 +576,15 @@ def apply_style(
         w = None if style.opening is None else style.opening.closing(opening)
         if w is None and closure is not None:  # a style without a closing level: the closure head decides
             w = closure_weight(closure, ramp)
+        if text_closure is not None:
+            w = text_closure if w is None else np.maximum(w, text_closure)
         if w is not None:
             expr = expr + w[:, None] * (style.closed_expression - expr)
     if voice is not None:
-        expr = style.rest_expression + np.asarray(voice)[:, None] * (expr - style.rest_expression)
+        if fps is None and style.pause_open is not None:
+            raise ValueError("this person's style rests the mouth over time in pauses: pass the frame rate")
+        rest = style.rest_track(np.asarray(voice), fps or 25.0)
+        expr = rest + np.asarray(voice)[:, None] * (expr - rest)
     return expr.astype(np.float32)
 
 
@@ -534,7 +625,10 @@ def style_expressions(
             raise ValueError("this person's style needs the opening model's feature windows")
         model = style_opening_model(style, opening)
         z = model.predict(in_blocks(opening_windows[0], WINDOW_BLOCK), opening_windows[1])
-    return apply_style(style, *network_outputs(net, in_blocks(windows, WINDOW_BLOCK)), voice, ramp, z)
+    fps = None if opening_windows is None else opening_windows[1]
+    return apply_style(
+        style, *network_outputs(net, in_blocks(windows, WINDOW_BLOCK)), voice, ramp, z, fps=fps
+    )
 
 
 def predict_expressions(
@@ -544,13 +638,15 @@ def predict_expressions(
     style: PersonStyle,
     net: Audio2ExpressionNet,
     num_frames: int | None = None,
+    transcript: tuple[str, str] | None = None,
 ) -> np.ndarray:
     """Expression coefficients ``(T, K_exp)`` for mono audio, at ``fps`` video frames per second.
 
     Speech features → generic network → person map → opening model blend → closures
     (:func:`apply_style`); frames without voice (see :func:`nvp.vad.voice_activity`, a voice-activity
     detector) blend smoothly towards the person's rest expression, so pauses, silence, noise and music give
-    a resting mouth.
+    a resting mouth. ``transcript``: ``(text, language)`` of what the audio says (an espeak-ng language,
+    :mod:`nvp.transcript`): its p, b and m close the lips where they are aligned.
     """
     from nvp.vad import voice_activity
     from nvp.windows import iter_frame_windows
@@ -561,7 +657,13 @@ def predict_expressions(
     audio_exp, closure = network_outputs(net, blocks)
     z = opening_outputs(style, opening_feats, fps, len(audio_exp))
     voice = voice_activity(audio, sample_rate, fps, len(audio_exp))
-    return apply_style(style, audio_exp, closure, voice, opening=z)
+    text_closure = None
+    if transcript is not None:
+        from nvp.transcript import align_transcript, bilabial_weights
+
+        alignment = align_transcript(transcript[0], audio, sample_rate, transcript[1])
+        text_closure = bilabial_weights(alignment, fps, len(audio_exp))
+    return apply_style(style, audio_exp, closure, voice, opening=z, text_closure=text_closure, fps=fps)
 
 
 def opening_outputs(

@@ -108,7 +108,7 @@ class ExpressionStream:
         windows = frame_windows(feats, self.fps, num_frames=n)
         audio_exp, closure = network_outputs(self.net, [windows])
         voice = voice_activity(seg, SAMPLE_RATE, self.fps, n)
-        expr = apply_style(self.style, audio_exp, closure, voice, opening=opening)[
+        expr = apply_style(self.style, audio_exp, closure, voice, opening=opening, fps=self.fps)[
             self.done - first : end - first
         ]
         self.done = end

@@ -39,13 +39,15 @@ VOICE_SUFFIX = "_piper_voice"
 
 @dataclass(frozen=True)
 class Speech:
-    """Synthesized speech: ``audio`` ``(S,)`` float32 mono in [-1, 1] at ``rate`` Hz, and which engine and
-    voice said it (for the output's provenance)."""
+    """Synthesized speech: ``audio`` ``(S,)`` float32 mono in [-1, 1] at ``rate`` Hz, which engine and
+    voice said it (for the output's provenance) and the espeak-ng language its phonemes were made in
+    (:mod:`nvp.transcript` aligns the text with it)."""
 
     audio: np.ndarray
     rate: int
     engine: str
     voice: str
+    language: str = "en-us"
 
     @property
     def seconds(self) -> float:
@@ -110,7 +112,8 @@ def _piper(text: str, voice: str | None, length_scale: float) -> Speech:
     if not chunks:
         raise NvpError(f"piper produced no audio for the text {text[:40]!r}")
     audio = np.concatenate([c.audio_float_array for c in chunks]).astype(np.float32)
-    return Speech(np.clip(audio, -1.0, 1.0), int(chunks[0].sample_rate), "piper", name)
+    language = str(getattr(pv.config, "espeak_voice", "") or "en-us")
+    return Speech(np.clip(audio, -1.0, 1.0), int(chunks[0].sample_rate), "piper", name, language)
 
 
 ESPEAK_WPM = 160
@@ -136,7 +139,7 @@ def _espeak(text: str, program: str, voice: str | None, length_scale: float) -> 
         audio = read_audio(wav, 22050)
     if len(audio) == 0:
         raise NvpError(f"espeak-ng produced no audio for the text {text[:40]!r}")
-    return Speech(audio.astype(np.float32), 22050, "espeak-ng", lang)
+    return Speech(audio.astype(np.float32), 22050, "espeak-ng", lang, lang)
 
 
 def synthesize(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -168,18 +169,108 @@ def test_predict_rejects_a_map_made_with_another_network(tmp_path):
     assert not (tmp_path / "p.npz").exists()
 
 
-def test_the_rest_mouth_is_the_one_held_in_pauses(face_model):
-    from nvp.person import pause_expression
-
-    fps, t = 25.0, 100
-    expr = np.zeros((t, face_model.num_exp), np.float32)
-    expr[:, 0] = 1.0  # talking
-    expr[40:60, 0] = 0.3  # a 0.8 s pause with the mouth slightly open
+def _footage_with_pauses(face_model, pause_mouth, seed=0):
+    """30 s of synthetic footage at 25 fps: speech (the mouth opening and closing along the coefficient that
+    opens it most) with 0.6-1.6 s pauses in which ``pause_mouth(frame in the pause)`` says how far it is
+    open (1 = a typical speaking opening). Returns expressions, gaps, voiced flags, the opening coefficient
+    and its scale."""
+    fps, t = 25.0, 750
+    ident = np.zeros(face_model.num_id, np.float32)
+    eye = np.eye(face_model.num_exp, dtype=np.float32)
+    k = int(
+        np.argmax(np.abs(face_model.inner_lip_gap(ident, eye) - face_model.inner_lip_gap(ident, 0 * eye)))
+    )
+    sign = np.sign(
+        face_model.inner_lip_gap(ident, eye[k : k + 1] * 3)[0]
+        - face_model.inner_lip_gap(ident, 0 * eye[:1])[0]
+    )
+    rng = np.random.default_rng(seed)
+    amount = np.abs(np.sin(np.arange(t) * 0.7)) * rng.uniform(0.6, 1.4, t)  # syllables, closing between
     voiced = np.ones(t, bool)
-    voiced[40:60] = False
-    voiced[80:83] = False  # 0.12 s: a gap, not a pause
-    np.testing.assert_allclose(pause_expression(expr, voiced, fps)[0], 0.3)
-    assert pause_expression(expr, np.ones(t, bool), fps) is None  # no pause: the caller keeps its default
+    at = 20
+    while at < t - 60:
+        length = int(rng.integers(15, 40))
+        voiced[at : at + length] = False
+        amount[at : at + length] = [pause_mouth(j) for j in range(length)]
+        at += length + int(rng.integers(40, 90))
+    expr = np.zeros((t, face_model.num_exp), np.float32)
+    expr[:, k] = sign * 3.0 * amount
+    return fps, expr, face_model.inner_lip_gap(ident, expr), voiced, k
+
+
+@pytest.mark.parametrize(
+    "rests",
+    [
+        "closed",  # closes the lips 0.2 s into every pause
+        "slightly_open",  # never closes them in pauses: a small opening throughout
+        "wide_open",  # breathes through an open mouth in pauses, wider than they speak
+    ],
+)
+def test_pauses_rest_as_the_person_rests_in_their_footage(face_model, rests):
+    from nvp.metrics import closed_level, pause_mask
+    from nvp.person import pause_rest
+
+    pause_mouth = {
+        "closed": lambda j: 0.6 if j < 5 else 0.0,
+        "slightly_open": lambda j: 0.25,
+        "wide_open": lambda j: 1.6,
+    }[rests]
+    fps, expr, gap, voiced, k = _footage_with_pauses(face_model, pause_mouth)
+    ident = np.zeros(face_model.num_id, np.float32)
+    rest, open_, delay = pause_rest(expr, gap, voiced, fps, lambda e: face_model.inner_lip_gap(ident, e))
+    pauses = pause_mask(voiced, fps, 0.3)
+    resting = closed_level(gap, 0.3)
+    real_rests = np.mean(gap[pauses] <= resting)
+    # new audio with other pauses: the mouth each frame rests towards, where the voice is off
+    style = PersonStyle(
+        PersonMap(np.zeros((K, 32), np.float32), np.zeros(K, np.float32)), rest, "mel", "0", {}
+    )
+    style = dataclasses.replace(style, pause_open=open_, pause_close_after_s=delay)
+    _, _, _, new_voiced, _ = _footage_with_pauses(face_model, pause_mouth, seed=7)
+    track = style.rest_track(new_voiced.astype(np.float32), fps)
+    out_gap = face_model.inner_lip_gap(ident, track)[pause_mask(new_voiced, fps, 0.3)]
+    out_rests = np.mean(out_gap <= resting)
+    assert abs(out_rests - real_rests) <= 0.15, (out_rests, real_rests)
+    assert out_gap.max() <= np.median(gap[voiced]) + 1e-6  # never wider than they speak
+    if rests == "closed":
+        assert real_rests > 0.6 and 0.1 <= delay <= 0.3
+        assert np.median(out_gap) <= closed_level(gap)  # the lips closed, as theirs are
+    elif rests == "slightly_open":  # their own small opening (resting, by the metric), not closed lips
+        assert real_rests == 1 and delay == 0
+        np.testing.assert_allclose(np.median(out_gap), np.median(gap[pauses]), rtol=0.05)
+        assert np.median(out_gap) > closed_level(gap)
+    else:
+        assert real_rests == 0 and delay == np.inf
+
+
+def test_a_style_that_rests_over_time_round_trips_and_needs_the_frame_rate(tmp_path):
+    from nvp.person import apply_style
+
+    style = dataclasses.replace(_style(), pause_open=np.full(K, 0.5, np.float32), pause_close_after_s=0.2)
+    back = PersonStyle.load(style.save(tmp_path / "s.npz"))
+    np.testing.assert_array_equal(back.pause_open, style.pause_open)
+    assert back.pause_close_after_s == 0.2
+    never = dataclasses.replace(style, pause_close_after_s=float("inf"))
+    assert PersonStyle.load(never.save(tmp_path / "n.npz")).pause_close_after_s == float("inf")
+    voice = np.array([1, 1, 0, 0, 0, 0, 0, 0, 0, 0, 1], np.float32)
+    track = style.rest_track(voice, 25.0)
+    np.testing.assert_allclose(track[2:6], 0.5)  # the first 0.2 s of the pause: the open mouth
+    np.testing.assert_allclose(track[8:10], np.broadcast_to(style.rest_expression, (2, K)), atol=1e-6)
+    with pytest.raises(ValueError, match="frame rate"):
+        apply_style(style, np.zeros((11, 32), np.float32), None, voice)
+
+
+def test_text_closures_close_the_lips_on_p_b_m_even_when_the_audio_model_does_not():
+    from nvp.person import apply_style
+
+    style = dataclasses.replace(_style(), closed_expression=np.full(K, -1.0, np.float32))
+    audio_exp = np.random.default_rng(0).normal(size=(6, 32)).astype(np.float32)
+    w = np.array([0, 1, 1, 0, 0.5, 0], np.float32)
+    out = apply_style(style, audio_exp, None, None, text_closure=w)
+    free = apply_style(style, audio_exp, None, None)
+    np.testing.assert_allclose(out[[0, 3, 5]], free[[0, 3, 5]])
+    np.testing.assert_allclose(out[1:3], -1.0, atol=1e-6)
+    np.testing.assert_allclose(out[4], (free[4] - 1.0) / 2, atol=1e-6)
 
 
 def test_range_calibration_widens_a_compressed_map_to_the_real_spread():

@@ -318,6 +318,14 @@ def _cmd_dub(args: argparse.Namespace) -> int:
     if not audios:
         raise NvpError("give the audio to dub (files, or --list FILE with one per line)")
     several = len(audios) > 1
+    transcript = None
+    if args.transcript is not None:
+        if several:
+            raise NvpError("--transcript is the text of one audio file; dub the files one by one")
+        try:
+            transcript = (Path(args.transcript).read_text(encoding="utf-8"), args.language)
+        except (OSError, UnicodeDecodeError) as e:
+            raise NvpError(f"cannot read the transcript {args.transcript}: {e}") from e
     if several:
         if Path(args.output).suffix.lower() == ".mp4" or Path(args.output).is_file():
             raise NvpError(
@@ -343,6 +351,7 @@ def _cmd_dub(args: argparse.Namespace) -> int:
                 device=_device(args.device),
                 progress=not args.quiet,
                 style=args.style,
+                transcript=transcript,
             )
         except NvpError as e:
             if not several:
@@ -372,7 +381,7 @@ def _cmd_say(args: argparse.Namespace) -> int:
 
     from nvp.app.dub import dub
     from nvp.artifact import check_output_file
-    from nvp.tts import installed_voices, synthesize
+    from nvp.tts import have_piper, installed_voices, synthesize
 
     if args.list_voices:
         voices = installed_voices()
@@ -408,6 +417,7 @@ def _cmd_say(args: argparse.Namespace) -> int:
             progress=not args.quiet,
             style=args.style,
             details={"speech": f"text to speech ({speech.engine}, voice {speech.voice})"},
+            transcript=(args.text, speech.language) if have_piper() else None,  # its phonemizer aligns
         )
         if args.wav is not None:
             import shutil
@@ -476,7 +486,8 @@ def _cmd_info(args: argparse.Namespace) -> int:
     from nvp.bundle import PersonBundle
     from nvp.person import PersonStyle
 
-    b = PersonBundle.load(args.person)
+    b = PersonBundle.load(args.person, verify=False)
+    checked = b.check()  # every file the bundle lists, at the size and sha256 the fit wrote
     m = b.manifest
     t = m["target"]
     print(f"person bundle {b.root} (format {m['format']} v{m['version']}, made by nvp {m['nvp_version']})")
@@ -492,6 +503,7 @@ def _cmd_info(args: argparse.Namespace) -> int:
     for name, facts in m["stages"].items():
         extra = ", ".join(f"{k} {v}" for k, v in facts.items() if k != "seconds")
         print(f"  {name}: {facts.get('seconds', 0):.1f} s" + (f" ({extra})" if extra else ""))
+    print(f"  files: {checked} checked, each at the size and sha256 the fit wrote")
     return 0
 
 
@@ -787,6 +799,16 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--list", type=Path, help="a text file naming more audio files, one per line")
     p.add_argument("--person", type=Path, required=True, help="person bundle from nvp fit")
+    p.add_argument(
+        "--transcript",
+        type=Path,
+        help="UTF-8 text file: what the audio says; its p, b and m close the lips (needs the tts extra)",
+    )
+    p.add_argument(
+        "--language",
+        default="en-us",
+        help="the transcript's language, an espeak-ng voice name (en-us, fr, de, es, it, pt, hi, cmn, ...)",
+    )
     p.add_argument(
         "-o", "--output", type=Path, required=True, help="output mp4 (a folder for several: <audio name>.mp4)"
     )

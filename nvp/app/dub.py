@@ -139,11 +139,13 @@ def dub(
     progress: bool = True,
     style: str | Path | None = None,
     details: dict[str, str] | None = None,
+    transcript: tuple[str, str] | None = None,
 ) -> DubResult:
     """Make the person of ``bundle_dir`` say ``audio_path``; writes an mp4 as long as the audio (±1 frame),
     with the input audio at its own sample rate and channels. ``style``: another person's bundle or style
     file whose talking style drives the mouth (:func:`nvp.person.transferred_style`); ``details``: more
-    provenance tags for the output (e.g. how its speech was made)."""
+    provenance tags for the output (e.g. how its speech was made); ``transcript``: ``(text, language)`` of
+    what the audio says, whose p, b and m then close the lips (:mod:`nvp.transcript`)."""
     from nvp.artifact import check_output_file
     from nvp.media import audio_rate, frames_at, read_audio
     from nvp.person import predict_expressions
@@ -165,7 +167,9 @@ def dub(
     net, seq, model = person.net, person.tracked, person.model
     duration = len(mono) / rate
     n_out = num_video_frames(duration, seq.fps)
-    expression = predict_expressions(mono, rate, seq.fps, person.style, net, num_frames=n_out)
+    expression = predict_expressions(
+        mono, rate, seq.fps, person.style, net, num_frames=n_out, transcript=transcript
+    )
     order = target_frame_indices(n_out, seq.num_frames)
     weights = model.mouth_weights()
     extra = {**(details or {}), **person.mark}
@@ -174,7 +178,7 @@ def dub(
     )
     out = Path(output)
     out.parent.mkdir(parents=True, exist_ok=True)
-    parts = DubParts(out, _resume_key(audio_path, bundle, style, n_out))
+    parts = DubParts(out, _resume_key(audio_path, bundle, style, n_out, transcript))
     first = parts.finished * PART_FRAMES
     if parts.finished and progress:
         print(f"nvp dub: resuming {out.name} at frame {first} of {n_out}", file=sys.stderr)
@@ -203,9 +207,16 @@ def dub(
     return DubResult(out, n_out, seq.fps, duration, seconds, order, expression, n_out - first)
 
 
-def _resume_key(audio_path: str | Path, bundle: PersonBundle, style: str | Path | None, frames: int) -> dict:
-    """What a resumed dub must share with the interrupted one: nvp's version, the audio's and the style's
-    content, the person bundle's manifest (its input, settings and stages) and the parts' length."""
+def _resume_key(
+    audio_path: str | Path,
+    bundle: PersonBundle,
+    style: str | Path | None,
+    frames: int,
+    transcript: tuple[str, str] | None = None,
+) -> dict:
+    """What a resumed dub must share with the interrupted one: nvp's version, the audio's, the style's and
+    the transcript's content, the person bundle's manifest (its input, settings and stages) and the parts'
+    length."""
     from nvp import __version__
     from nvp.artifact import file_sha256
 
@@ -223,6 +234,9 @@ def _resume_key(audio_path: str | Path, bundle: PersonBundle, style: str | Path 
         "audio_sha256": file_sha256(Path(audio_path)),
         "person_sha256": manifest_sha(bundle),
         "style_sha256": style_sha,
+        "transcript_sha256": None
+        if transcript is None
+        else hashlib.sha256(json.dumps(list(transcript)).encode()).hexdigest(),
         "frames": frames,
         "part_frames": PART_FRAMES,
     }
