@@ -4,9 +4,12 @@
 
 The page (``nvp/app/web/index.html``, plain HTML and JavaScript served from the package) and the API share
 one small HTTP server from Python's standard library (enough for one user on their own machine; it binds
-to localhost by default). Work runs in the background, one job at a time (:mod:`nvp.app.jobs`).
+to localhost by default). Work runs in the background, one job at a time (:mod:`nvp.app.jobs`). Which
+requests are answered at all (Host, Origin, the per-launch token) is :mod:`nvp.app.serve_security`; what
+is accepted (media types, formats, sizes, durations, queue, disk, time) is :mod:`nvp.app.serve_limits`;
+``docs/serve.md`` explains both to users.
 
-API (JSON unless said; ids are made by the server and checked against ``jobs.ID_PATTERN``):
+API (JSON unless said; every ``/api/`` call carries the token; ids are made by the server):
 
 =========================================  ==================================================================
 ``GET /api/people``                        people: id, name, status, the bundle's facts
@@ -21,290 +24,55 @@ API (JSON unless said; ids are made by the server and checked against ``jobs.ID_
 ``GET /api/jobs/<id>/result.mp4``          a finished dub (byte ranges supported, for the player)
 =========================================  ==================================================================
 
-Safety: uploads are limited in size (``--max-upload-mb``) and must be a video with sound (fits) or audio
-(dubs) that FFmpeg reads, or they are deleted and refused; client file names never become paths (uploads
-are stored under server-made ids); only files the server made are ever read back; errors are one JSON
-``{"error": "..."}`` with a 4xx status, like the CLI's one line.
+Errors are one JSON ``{"error": "..."}`` (4xx, or 500 for a bug, whose details go to the log), like the
+CLI's one line, and never show the server's paths. Client file names never become paths (uploads are
+stored under server-made ids); only files the server made are read back. A job's upload goes when the job
+ends (a fitted bundle keeps its own copy of the footage); a cancelled or failed job leaves only its record.
 """
 
 from __future__ import annotations
 
+import html
 import json
+import logging
+import os
 import re
-import shutil
+import secrets
+import shlex
+import signal
+import socket
+import sys
 import threading
 import time
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
-from urllib.parse import parse_qs, urlparse
+from urllib.parse import parse_qs, urlsplit
 
-from nvp.app.jobs import ID_PATTERN, Job, JobStore, Worker, new_id
+from nvp.app.serve_app import App
+from nvp.app.serve_limits import Limits, body_length, check_free_disk, media_type
+from nvp.app.serve_security import (
+    MIN_TOKEN_CHARS,
+    TOKEN_ENV,
+    TOKEN_FILE,
+    ApiError,
+    Guard,
+    is_loopback,
+    page_csp,
+    security_headers,
+)
 from nvp.errors import NvpError
+
+logger = logging.getLogger(__name__)
 
 WEB = Path(__file__).parent / "web"
 DEFAULT_PORT = 7860
-MAX_UPLOAD_MB = 1024
-MAX_TEXT = 2000
-VIDEO_TYPES = ("video/", "application/octet-stream")
-AUDIO_TYPES = ("audio/", "video/", "application/octet-stream")
 
-
-class ApiError(Exception):
-    def __init__(self, status: HTTPStatus, message: str) -> None:
-        super().__init__(message)
-        self.status = status
-
-
-class App:
-    """The data folder, the job store and the worker behind the HTTP handler."""
-
-    def __init__(self, data: Path, max_upload_mb: float = MAX_UPLOAD_MB, extra_fit_args: tuple = ()) -> None:
-        self.data = data.resolve()
-        for sub in ("people", "uploads", "dubs"):
-            (self.data / sub).mkdir(parents=True, exist_ok=True)
-        self.max_upload = int(max_upload_mb * 1024 * 1024)
-        self.extra_fit_args = list(extra_fit_args)
-        self.store = JobStore(self.data / "jobs.sqlite")
-        self._names_path = self.data / "people.json"
-        self._lock = threading.Lock()
-        self._marks: dict[str, str] = {}
-        self.worker = Worker(self.store, self.data, on_done=self._ended)
-        self.requeued = self.worker.recover()
-
-    @staticmethod
-    def _ended(job: Job) -> None:
-        """A dub that was cancelled or failed is not run again: the parts it finished (kept for resuming
-        after a server restart, :mod:`nvp.app.dub`) go."""
-        from nvp.app.dub import parts_folder
-
-        if job.kind in ("dub", "say") and job.state in ("cancelled", "failed"):
-            shutil.rmtree(parts_folder(Path(job.output)), ignore_errors=True)
-
-    # -- people
-
-    def names(self) -> dict[str, dict]:
-        if not self._names_path.exists():
-            return {}
-        return json.loads(self._names_path.read_text())
-
-    def _save_names(self, names: dict) -> None:
-        tmp = self._names_path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(names, indent=1))
-        tmp.replace(self._names_path)
-
-    def person_dir(self, pid: str) -> Path:
-        check_id(pid)
-        if pid not in self.names():
-            raise ApiError(HTTPStatus.NOT_FOUND, f"no person {pid}")
-        return self.data / "people" / pid
-
-    def people(self) -> list[dict]:
-        from nvp.bundle import PersonBundle
-
-        jobs = {j.person: j for j in self.store.all() if j.kind == "fit"}
-        out = []
-        for pid, meta in self.names().items():
-            job = jobs.get(pid)
-            entry = {
-                "id": pid,
-                "name": meta["name"],
-                "created": meta["created"],
-                "fit_job": job.id if job else None,
-            }
-            folder = self.data / "people" / pid
-            if (folder / "bundle.json").exists():
-                try:
-                    m = PersonBundle.load(folder, verify=False).manifest
-                    t = m["target"]
-                    entry["status"] = "ready"
-                    entry["info"] = {
-                        "size": f"{t['width']}x{t['height']}",
-                        "fps": round(t["fps"], 3),
-                        "seconds": round(t["duration_s"], 1),
-                        "preset": m["preset"],
-                        "stages": {k: round(v.get("seconds", 0), 1) for k, v in m["stages"].items()},
-                    }
-                except NvpError as e:
-                    entry["status"], entry["info"] = "damaged", {"error": str(e)}
-            else:
-                entry["status"] = job.state if job else "missing"
-            out.append(entry)
-        return out
-
-    def add_person(self, name: str, upload: Path, minutes: float | None) -> tuple[str, Job]:
-        pid = new_id("p")
-        with self._lock:
-            names = self.names()
-            names[pid] = {"name": name[:80] or "person", "created": time.time(), "upload": upload.name}
-            self._save_names(names)
-        out = self.data / "people" / pid
-        args = ["fit", str(upload), "-o", str(out), *self.extra_fit_args]
-        if minutes is not None:
-            args += ["--budget-minutes", str(minutes)]
-        job = self.store.add(Job(new_id("job"), "fit", pid, args, str(out)))
-        self.worker.wake.set()
-        return pid, job
-
-    def remove_person(self, pid: str) -> None:
-        folder = self.person_dir(pid)
-        if any(j.person == pid and j.state in ("queued", "running") for j in self.store.all()):
-            raise ApiError(HTTPStatus.CONFLICT, f"{pid} has a job in progress; cancel it first")
-        with self._lock:
-            names = self.names()
-            meta = names.pop(pid)
-            self._save_names(names)
-        shutil.rmtree(folder, ignore_errors=True)
-        shutil.rmtree(folder.with_name(folder.name + ".partial"), ignore_errors=True)
-        (self.data / "uploads" / meta.get("upload", "-")).unlink(missing_ok=True)
-
-    def ready_person(self, pid: str) -> Path:
-        folder = self.person_dir(pid)
-        if not (folder / "bundle.json").exists():
-            raise ApiError(HTTPStatus.CONFLICT, f"{pid} is not fitted yet")
-        return folder
-
-    def add_dub(self, pid: str, upload: Path) -> Job:
-        folder = self.ready_person(pid)
-        jid = new_id("job")
-        out = self.data / "dubs" / f"{jid}.mp4"
-        job = self.store.add(
-            Job(jid, "dub", pid, ["dub", str(upload), "--person", str(folder), "-o", str(out)], str(out))
-        )
-        self.worker.wake.set()
-        return job
-
-    def add_say(self, pid: str, text: str, voice: str | None) -> Job:
-        folder = self.ready_person(pid)
-        text = text.strip()
-        if not text or len(text) > MAX_TEXT:
-            raise ApiError(HTTPStatus.BAD_REQUEST, f"give a text of 1 to {MAX_TEXT} characters")
-        jid = new_id("job")
-        out = self.data / "dubs" / f"{jid}.mp4"
-        args = ["say", text, "--person", str(folder), "-o", str(out)]
-        if voice:
-            if not re.fullmatch(r"[A-Za-z0-9_\-]{1,40}", voice):
-                raise ApiError(HTTPStatus.BAD_REQUEST, "a voice is the name of an installed voice")
-            args += ["--voice", voice]
-        job = self.store.add(Job(jid, "say", pid, args, str(out)))
-        self.worker.wake.set()
-        return job
-
-    # -- jobs
-
-    def job(self, jid: str) -> Job:
-        check_id(jid)
-        job = self.store.get(jid)
-        if job is None:
-            raise ApiError(HTTPStatus.NOT_FOUND, f"no job {jid}")
-        return job
-
-    def job_view(self, job: Job, names: dict | None = None) -> dict:
-        d = job.public()
-        d["person_name"] = (self.names() if names is None else names).get(job.person, {}).get("name", "")
-        if job.kind in ("dub", "say") and job.state == "done":
-            d["result"] = f"/api/jobs/{job.id}/result.mp4"
-            d["mark"] = self.mark(job)
-        if job.kind == "fit" and self.preview(job) is not None:
-            d["preview"] = f"/api/jobs/{job.id}/preview.png"
-        return d
-
-    def mark(self, job: Job) -> str:
-        """The synthetic-media mark of a finished dub (read once: the page asks every second or so)."""
-        if job.id not in self._marks:
-            from nvp.provenance import verify
-
-            try:
-                self._marks[job.id] = verify(job.output).tags.get("comment", "")
-            except NvpError:
-                self._marks[job.id] = ""
-        return self._marks[job.id]
-
-    def preview(self, job: Job) -> Path | None:
-        """The newest renderer preview of a fit (in its partial folder while it runs)."""
-        out = Path(job.output)
-        for folder in (out.with_name(out.name + ".partial") / "renderer", out / "renderer"):
-            shots = sorted(folder.glob("preview_*.png")) if folder.is_dir() else []
-            if shots:
-                return shots[-1]
-        return None
-
-    def thumbnail(self, pid: str) -> bytes:
-        folder = self.person_dir(pid)
-        thumb = folder.with_name(pid + ".jpg")
-        if not thumb.exists():
-            import cv2
-
-            from nvp.media import iter_frames
-
-            src = folder / "target.mp4"
-            if not src.exists():
-                src = self.data / "uploads" / self.names()[pid].get("upload", "-")
-            try:
-                frame = next(iter_frames(src, max_frames=1))
-            except (NvpError, StopIteration) as e:
-                raise ApiError(HTTPStatus.NOT_FOUND, f"no picture of {pid} yet") from e
-            h, w = frame.shape[:2]
-            small = cv2.resize(frame, (160, max(1, round(160 * h / w))), interpolation=cv2.INTER_AREA)
-            ok, jpg = cv2.imencode(".jpg", cv2.cvtColor(small, cv2.COLOR_RGB2BGR))
-            thumb.write_bytes(jpg.tobytes())
-        return thumb.read_bytes()
-
-    # -- uploads
-
-    def receive(self, handler: BaseHTTPRequestHandler, kind: str) -> Path:
-        """Store the request body under a server-made name, then check it is the media it should be."""
-        size = int(handler.headers.get("Content-Length") or -1)
-        if size <= 0:
-            raise ApiError(HTTPStatus.LENGTH_REQUIRED, "send the file as the request body (with its length)")
-        if size > self.max_upload:
-            raise ApiError(
-                HTTPStatus.REQUEST_ENTITY_TOO_LARGE,
-                f"the file is {size / 2**20:.0f} MB; the limit is {self.max_upload / 2**20:.0f} MB",
-            )
-        ctype = (handler.headers.get("Content-Type") or "application/octet-stream").lower()
-        allowed = VIDEO_TYPES if kind == "video" else AUDIO_TYPES
-        if not ctype.startswith(allowed):
-            raise ApiError(HTTPStatus.UNSUPPORTED_MEDIA_TYPE, f"expected {kind}, got {ctype}")
-        path = self.data / "uploads" / new_id("up")
-        with open(path, "wb") as f:
-            left = size
-            while left > 0:
-                chunk = handler.rfile.read(min(left, 1 << 20))
-                if not chunk:
-                    break
-                f.write(chunk)
-                left -= len(chunk)
-        if left:
-            path.unlink(missing_ok=True)
-            raise ApiError(HTTPStatus.BAD_REQUEST, "the upload ended early")
-        try:
-            self._check_media(path, kind)
-        except NvpError as e:
-            path.unlink(missing_ok=True)
-            raise ApiError(HTTPStatus.UNPROCESSABLE_ENTITY, f"not a usable {kind} file: {e}") from e
-        return path
-
-    @staticmethod
-    def _check_media(path: Path, kind: str) -> None:
-        from nvp.media import audio_rate, probe_video
-
-        if kind == "video":
-            info = probe_video(path)
-            if not info.has_audio:
-                raise NvpError("the video has no sound (a fit learns from the person's speech)")
-        else:
-            audio_rate(path)
-
-
-def check_id(value: str) -> str:
-    if not ID_PATTERN.fullmatch(value or ""):
-        raise ApiError(HTTPStatus.NOT_FOUND, "no such item")
-    return value
+__all__ = ["ApiError", "App", "Limits", "make_server", "serve"]
 
 
 ROUTES: list[tuple[str, re.Pattern, str]] = [
-    (m, re.compile(p + r"$"), name)
+    (m, re.compile(p), name)
     for m, p, name in [
         ("GET", r"/", "index"),
         ("GET", r"/api/people", "people"),
@@ -323,91 +91,227 @@ ROUTES: list[tuple[str, re.Pattern, str]] = [
 
 
 class Handler(BaseHTTPRequestHandler):
+    """One request: the checks of :mod:`nvp.app.serve_security`, then a route. HTTP/1.0: one request per
+    connection. A body left unread (a refused upload) is drained briefly after the answer so the client
+    reads the answer instead of a reset connection."""
+
     app: App  # set by make_server
-    server_version = "nvp"
+    guard: Guard
+    default_request_version = "HTTP/1.0"  # even an answer to a garbled request line has a status line
 
     def log_message(self, fmt: str, *args) -> None:  # quiet: the page polls every second
         return None
 
+    def version_string(self) -> str:
+        return "nvp"
+
+    def send_response_only(self, code: int, message: str | None = None) -> None:
+        if self.request_version == "HTTP/0.9":  # "GET / HTTP/0.9" too gets a status line and headers
+            self.request_version = "HTTP/1.0"
+        super().send_response_only(code, message)
+
     def do_GET(self) -> None:
-        self._dispatch("GET")
+        self._dispatch()
 
-    def do_POST(self) -> None:
-        self._dispatch("POST")
+    do_HEAD = do_POST = do_DELETE = do_PUT = do_PATCH = do_OPTIONS = do_GET
 
-    def do_DELETE(self) -> None:
-        self._dispatch("DELETE")
-
-    def _dispatch(self, method: str) -> None:
-        url = urlparse(self.path)
+    def send_error(self, code: int, message: str | None = None, explain: str | None = None) -> None:
+        """Answers of the standard library's request parsing (a garbled request, too long a line or
+        header, an unknown method): JSON like every other error."""
         try:
-            for m, pattern, name in ROUTES:
-                match = pattern.match(url.path)
-                if match and m == method:
-                    getattr(self, "r_" + name)(parse_qs(url.query), **match.groupdict())
-                    return
-            raise ApiError(HTTPStatus.NOT_FOUND, "no such page")
+            phrase = HTTPStatus(code).phrase
+        except ValueError:
+            phrase = "error"
+        self.close_connection = True
+        if not getattr(self, "_responded", False):
+            self._json({"error": message or phrase}, code)
+
+    def _dispatch(self) -> None:
+        self._responded = False
+        self._extra: dict[str, str] = {}
+        length = (self.headers.get("Content-Length") or "").strip()
+        self._body_left = int(length) if length.isdigit() and len(length) < 16 else 0
+        try:
+            self._route()
         except ApiError as e:
-            self._json({"error": str(e)}, e.status)
+            self._error(e.status, str(e))
+        except TimeoutError:
+            self._error(HTTPStatus.REQUEST_TIMEOUT, "the request took too long")
         except (BrokenPipeError, ConnectionResetError):
-            return
+            self.close_connection = True
+            self._body_left = 0
+        except Exception:
+            logger.exception("nvp serve: %s %s", self.command, urlsplit(self.path).path[:200])
+            self._error(HTTPStatus.INTERNAL_SERVER_ERROR, "internal error (the server's log has the details)")
+        finally:
+            if self._body_left > 0:
+                self._drain()
+
+    def _route(self) -> None:
+        if not self.path.startswith("/"):
+            raise ApiError(HTTPStatus.BAD_REQUEST, "the request target must be a path")
+        url = urlsplit(self.path)
+        method = self.command
+        host = self.guard.check_host(self.headers)
+        self.guard.check_origin(self.headers, host, page=url.path == "/" and method in ("GET", "HEAD"))
+        try:
+            query = parse_qs(url.query, max_num_fields=20)
+        except ValueError as e:
+            raise ApiError(HTTPStatus.BAD_REQUEST, "too many query fields") from e
+        if url.path == "/api" or url.path.startswith("/api/"):
+            self.guard.check_token(self.headers, query, method)
+        wanted = "GET" if method == "HEAD" else method
+        allowed = []
+        for m, pattern, name in ROUTES:
+            match = pattern.fullmatch(url.path)
+            if match and m == wanted:
+                getattr(self, "r_" + name)(query, **match.groupdict())
+                return
+            if match:
+                allowed += [m, "HEAD"] if m == "GET" else [m]
+        if allowed:
+            self._extra["Allow"] = ", ".join(allowed)
+            raise ApiError(HTTPStatus.METHOD_NOT_ALLOWED, f"use {' or '.join(allowed)} here")
+        raise ApiError(HTTPStatus.NOT_FOUND, "no such page")
 
     # -- responses
 
-    def _send(
-        self, body: bytes, ctype: str, status: HTTPStatus = HTTPStatus.OK, extra: dict | None = None
-    ) -> None:
+    def _start(self, status: int, ctype: str, length: int, extra: dict | None = None, csp: str | None = None):
+        self._responded = True
         self.send_response(status)
-        self.send_header("Content-Type", ctype)
-        self.send_header("Content-Length", str(len(body)))
-        self.send_header("Cache-Control", "no-store")
-        self.send_header("X-Content-Type-Options", "nosniff")
-        for k, v in (extra or {}).items():
+        headers = {**security_headers(), **(extra or {})}
+        if csp:
+            headers["Content-Security-Policy"] = csp
+        headers.update({"Content-Type": ctype, "Content-Length": str(length), "Connection": "close"})
+        for k, v in headers.items():
             self.send_header(k, v)
         self.end_headers()
+
+    def _send(self, body: bytes, ctype: str, status: int = HTTPStatus.OK, extra=None, csp=None) -> None:
+        self._start(status, ctype, len(body), extra, csp)
         if self.command != "HEAD":
             self.wfile.write(body)
 
-    def _json(self, data, status: HTTPStatus = HTTPStatus.OK) -> None:
-        self._send(json.dumps(data).encode(), "application/json", status)
+    def _json(self, data, status: int = HTTPStatus.OK, extra: dict | None = None) -> None:
+        self._send(json.dumps(data).encode(), "application/json", status, extra)
+
+    def _error(self, status: int, message: str) -> None:
+        self.close_connection = True
+        if self._responded:  # the answer had begun (a streamed file): the connection just ends
+            return
+        try:
+            self._json({"error": self.app.public(message)}, status, self._extra)
+        except OSError:
+            pass
+
+    def _drain(self, budget: int = 16 << 20, seconds: float = 2.0) -> None:
+        try:
+            self.connection.shutdown(socket.SHUT_WR)
+            self.connection.settimeout(0.5)
+            end = time.monotonic() + seconds
+            left = min(self._body_left, budget)
+            while left > 0 and time.monotonic() < end:
+                chunk = self.rfile.read1(min(left, 1 << 16))
+                if not chunk:
+                    break
+                left -= len(chunk)
+        except OSError:
+            pass
+        self._body_left = 0
 
     def _file(self, path: Path, ctype: str) -> None:
-        """A file the server made, with byte ranges (video players seek with them)."""
+        """A file the server made, streamed, with byte ranges (video players seek with them)."""
         size = path.stat().st_size
-        start, end = 0, size - 1
-        rng = re.fullmatch(r"bytes=(\d*)-(\d*)", self.headers.get("Range", ""))
-        status = HTTPStatus.OK
-        if rng and (rng.group(1) or rng.group(2)):
-            if rng.group(1):
-                start = int(rng.group(1))
-                end = min(int(rng.group(2)), size - 1) if rng.group(2) else size - 1
+        start, end, status = 0, size - 1, HTTPStatus.OK
+        rng = re.fullmatch(r"bytes=(\d{0,18})-(\d{0,18})", (self.headers.get("Range") or "").strip())
+        if rng and (rng[1] or rng[2]):
+            if rng[1]:
+                start = int(rng[1])
+                end = min(int(rng[2]), size - 1) if rng[2] else size - 1
             else:
-                start = max(0, size - int(rng.group(2)))
-            if start > end:
-                self._send(
-                    b"",
-                    ctype,
-                    HTTPStatus.REQUESTED_RANGE_NOT_SATISFIABLE,
-                    {"Content-Range": f"bytes */{size}"},
-                )
-                return
+                start = size - int(rng[2]) if int(rng[2]) else size
+                start = max(0, start)
+            if start > end or start >= size:
+                self._extra["Content-Range"] = f"bytes */{size}"
+                raise ApiError(HTTPStatus.REQUESTED_RANGE_NOT_SATISFIABLE, f"the file has {size} bytes")
             status = HTTPStatus.PARTIAL_CONTENT
-        with open(path, "rb") as f:
-            f.seek(start)
-            body = f.read(end - start + 1)
         extra = {"Accept-Ranges": "bytes"}
         if status == HTTPStatus.PARTIAL_CONTENT:
             extra["Content-Range"] = f"bytes {start}-{end}/{size}"
-        self._send(body, ctype, status, extra)
+        with open(path, "rb") as f:
+            self._start(status, ctype, end - start + 1, extra)
+            if self.command == "HEAD":
+                return
+            f.seek(start)
+            left = end - start + 1
+            while left > 0:
+                chunk = f.read(min(left, 256 * 1024))
+                if not chunk:
+                    break
+                self.wfile.write(chunk)
+                left -= len(chunk)
+
+    # -- request bodies
+
+    def _read(self, n: int) -> bytes:
+        chunk = self.rfile.read1(n)
+        self._body_left -= len(chunk)
+        return chunk
+
+    def _receive(self, kind: str) -> Path:
+        """Store the request body under a server-made name (``.part`` until whole), then check it is the
+        media it should be; nothing is left on disk when anything fails."""
+        limits = self.app.limits
+        media_type(self.headers, kind)
+        size = body_length(self.headers, limits.max_upload)
+        check_free_disk(self.app.data, size, limits)
+        path = self.app.new_upload()
+        part = path.with_name(path.name + ".part")
+        deadline = time.monotonic() + limits.request_timeout_s + size / (limits.min_upload_kib_per_s * 1024)
+        try:
+            with open(part, "xb") as f:
+                left = size
+                while left > 0:
+                    chunk = self._read(min(left, 1 << 20))
+                    if not chunk:
+                        raise ApiError(HTTPStatus.BAD_REQUEST, "the upload ended early")
+                    f.write(chunk)
+                    left -= len(chunk)
+                    if time.monotonic() > deadline:
+                        raise ApiError(HTTPStatus.REQUEST_TIMEOUT, "the upload is too slow")
+            part.rename(path)
+            self.app.inspect(path, kind)
+        except OSError as e:
+            part.unlink(missing_ok=True)
+            path.unlink(missing_ok=True)
+            from nvp.artifact import is_disk_full
+
+            if is_disk_full(e):
+                raise ApiError(HTTPStatus.INSUFFICIENT_STORAGE, "the disk is full") from e
+            raise
+        except BaseException:
+            part.unlink(missing_ok=True)
+            path.unlink(missing_ok=True)
+            raise
+        return path
 
     def _body_json(self) -> dict:
-        size = int(self.headers.get("Content-Length") or 0)
-        if not 0 < size <= 64 * 1024:
-            raise ApiError(HTTPStatus.BAD_REQUEST, "send a small JSON body")
+        ctype = (self.headers.get("Content-Type") or "").split(";", 1)[0].strip().lower()
+        if ctype != "application/json":
+            raise ApiError(
+                HTTPStatus.UNSUPPORTED_MEDIA_TYPE, "send a JSON body (Content-Type: application/json)"
+            )
+        size = body_length(self.headers, self.app.limits.max_json_bytes)
+        raw = b""
+        while len(raw) < size:
+            chunk = self._read(size - len(raw))
+            if not chunk:
+                raise ApiError(HTTPStatus.BAD_REQUEST, "the body ended early")
+            raw += chunk
         try:
-            data = json.loads(self.rfile.read(size))
-        except (ValueError, UnicodeDecodeError) as e:
-            raise ApiError(HTTPStatus.BAD_REQUEST, f"the body is not JSON: {e}") from e
+            data = json.loads(raw)
+        except (ValueError, RecursionError) as e:
+            raise ApiError(HTTPStatus.BAD_REQUEST, "the body is not JSON") from e
         if not isinstance(data, dict):
             raise ApiError(HTTPStatus.BAD_REQUEST, "the body must be a JSON object")
         return data
@@ -415,7 +319,12 @@ class Handler(BaseHTTPRequestHandler):
     # -- routes
 
     def r_index(self, q) -> None:
-        self._send((WEB / "index.html").read_bytes(), "text/html; charset=utf-8")
+        nonce = secrets.token_urlsafe(16)
+        token = html.escape(self.app.token, quote=True) if self.guard.embed_token else ""
+        page = (
+            (WEB / "index.html").read_text().replace("__NVP_NONCE__", nonce).replace("__NVP_TOKEN__", token)
+        )
+        self._send(page.encode(), "text/html; charset=utf-8", csp=page_csp(nonce))
 
     def r_people(self, q) -> None:
         self._json(self.app.people())
@@ -430,7 +339,8 @@ class Handler(BaseHTTPRequestHandler):
                 raise ApiError(HTTPStatus.BAD_REQUEST, "minutes must be a number") from e
             if not 0.05 <= minutes <= 240:
                 raise ApiError(HTTPStatus.BAD_REQUEST, "minutes must be between 0.05 and 240")
-        upload = self.app.receive(self, "video")
+        self.app.check_queue()
+        upload = self._receive("video")
         pid, job = self.app.add_person(name, upload, minutes)
         self._json({"person": pid, "job": self.app.job_view(job)}, HTTPStatus.CREATED)
 
@@ -443,11 +353,19 @@ class Handler(BaseHTTPRequestHandler):
 
     def r_new_dub(self, q, pid) -> None:
         self.app.ready_person(pid)
-        upload = self.app.receive(self, "audio")
-        self._json(self.app.job_view(self.app.add_dub(pid, upload)), HTTPStatus.CREATED)
+        self.app.check_queue()
+        upload = self._receive("audio")
+        try:
+            job = self.app.add_dub(pid, upload)
+        except BaseException:
+            upload.unlink(missing_ok=True)
+            raise
+        self._json(self.app.job_view(job), HTTPStatus.CREATED)
 
     def r_new_say(self, q, pid) -> None:
         body = self._body_json()
+        self.app.ready_person(pid)
+        self.app.check_queue()
         job = self.app.add_say(pid, str(body.get("text", "")), body.get("voice"))
         self._json(self.app.job_view(job), HTTPStatus.CREATED)
 
@@ -461,7 +379,7 @@ class Handler(BaseHTTPRequestHandler):
     def r_cancel(self, q, jid) -> None:
         job = self.app.job(jid)
         if not self.app.worker.cancel(job.id):
-            raise ApiError(HTTPStatus.CONFLICT, f"{jid} has already ended ({job.state})")
+            raise ApiError(HTTPStatus.CONFLICT, f"{jid} has already ended ({self.app.job(jid).state})")
         self._json({"cancelled": jid})
 
     def r_preview(self, q, jid) -> None:
@@ -472,37 +390,129 @@ class Handler(BaseHTTPRequestHandler):
 
     def r_result(self, q, jid) -> None:
         job = self.app.job(jid)
-        if job.kind not in ("dub", "say") or job.state != "done" or not Path(job.output).is_file():
+        out = Path(job.output)
+        if (
+            job.kind not in ("dub", "say")
+            or job.state != "done"
+            or not out.is_file()
+            or not self.app._inside(out)
+        ):
             raise ApiError(HTTPStatus.NOT_FOUND, f"{jid} has no result (yet)")
-        self._file(Path(job.output), "video/mp4")
+        self._file(out, "video/mp4")
+
+
+class _Server(ThreadingHTTPServer):
+    """Threads per connection, at most ``max_connections`` at once (more are answered 503 and closed)."""
+
+    daemon_threads = True
+
+    def __init__(self, address, handler, max_connections: int) -> None:
+        self._slots = threading.BoundedSemaphore(max_connections)
+        super().__init__(address, handler)
+
+    def process_request(self, request, client_address) -> None:
+        if not self._slots.acquire(blocking=False):
+            body = json.dumps({"error": "the server is busy; try again"}).encode()
+            head = (
+                "HTTP/1.0 503 Service Unavailable\r\nContent-Type: application/json\r\n"
+                f"Content-Length: {len(body)}\r\nRetry-After: 1\r\nConnection: close\r\n\r\n"
+            )
+            try:
+                request.settimeout(1.0)
+                request.sendall(head.encode() + body)
+            except OSError:
+                pass
+            self.shutdown_request(request)
+            return
+        try:
+            super().process_request(request, client_address)
+        except BaseException:
+            self._slots.release()
+            raise
+
+    def process_request_thread(self, request, client_address) -> None:
+        try:
+            super().process_request_thread(request, client_address)
+        finally:
+            self._slots.release()
 
 
 def make_server(app: App, host: str = "127.0.0.1", port: int = DEFAULT_PORT) -> ThreadingHTTPServer:
-    """The HTTP server for ``app`` (not started); ``port`` 0 picks a free one."""
-    handler = type("NvpHandler", (Handler,), {"app": app})
+    """The HTTP server for ``app`` (not started); ``port`` 0 picks a free one. ``server.guard`` holds the
+    checks (and the token)."""
+    guard = Guard.for_address(host, app.token)
+    handler = type(
+        "NvpHandler", (Handler,), {"app": app, "guard": guard, "timeout": app.limits.request_timeout_s}
+    )
+    server_class = _Server
+    if ":" in host.strip("[]"):
+        server_class = type("_Server6", (_Server,), {"address_family": socket.AF_INET6})
     try:
-        server = ThreadingHTTPServer((host, port), handler)
+        server = server_class((host.strip("[]"), port), handler, app.limits.max_connections)
     except OSError as e:
         raise NvpError(f"cannot listen on {host}:{port}: {e.strerror or e}") from e
-    server.daemon_threads = True
+    server.guard = guard
     return server
 
 
-def serve(
-    data: Path, host: str = "127.0.0.1", port: int = DEFAULT_PORT, max_upload_mb: float = MAX_UPLOAD_MB
-) -> None:
-    """Run the web app until interrupted."""
-    import sys
+def _sigterm_as_interrupt() -> None:
+    if threading.current_thread() is threading.main_thread():
 
-    app = App(data, max_upload_mb)
-    server = make_server(app, host, port)
-    app.worker.start()
-    where = f"http://{host}:{server.server_address[1]}/"
-    print(f"nvp serve: {where} (data in {app.data}; Ctrl-C stops)", file=sys.stderr, flush=True)
-    if app.requeued:
-        print(f"nvp serve: {len(app.requeued)} interrupted job(s) queued again", file=sys.stderr)
+        def interrupt(signum, frame) -> None:
+            signal.signal(signal.SIGTERM, signal.SIG_IGN)
+            raise KeyboardInterrupt
+
+        signal.signal(signal.SIGTERM, interrupt)
+
+
+def serve(
+    data: Path,
+    host: str = "127.0.0.1",
+    port: int = DEFAULT_PORT,
+    max_upload_mb: float = Limits.max_upload_mb,
+    token: str | None = None,
+    limits: Limits | None = None,
+) -> None:
+    """Run the web app until interrupted (Ctrl-C or SIGTERM: the running job is stopped and queued again).
+
+    ``token``: the API token; default ``$NVP_SERVE_TOKEN``, else a new one per launch. A ``host`` other
+    than loopback needs an explicit one (the page then asks for it instead of carrying it).
+
+    Raises:
+        NvpError: another server uses ``data``; a non-loopback host without a token; a token too short;
+            the address cannot be listened on.
+    """
+    token = token or os.environ.get(TOKEN_ENV) or None
+    if token is not None and len(token) < MIN_TOKEN_CHARS:
+        raise NvpError(f"the token must have at least {MIN_TOKEN_CHARS} characters")
+    if not is_loopback(host) and token is None:
+        raise NvpError(
+            f"--host {host} can be reached from other machines: set {TOKEN_ENV} to a secret of at least "
+            f"{MIN_TOKEN_CHARS} characters first (the page asks for it; the traffic is plain HTTP)"
+        )
+    app = App(data, limits or Limits(max_upload_mb=max_upload_mb), token=token)
+    server = None
     try:
+        server = make_server(app, host, port)
+        shown = f"[{host.strip('[]')}]" if ":" in host.strip("[]") else host
+        where = f"http://{shown}:{server.server_address[1]}/"
+        say = lambda text: print(f"nvp serve: {text}", file=sys.stderr, flush=True)  # noqa: E731
+        say(f"{where} (data in {app.data}; Ctrl-C stops)")
+        token_file = shlex.quote(str(Path(data) / TOKEN_FILE))
+        shown_token = f"the one in {TOKEN_ENV}" if token else app.token
+        say(f"API token {shown_token} (also in {token_file}): curl -H \"X-NVP-Token: $(cat {token_file})\" "
+            f"{where}api/people")  # fmt: skip
+        if not is_loopback(host):
+            say(
+                f"warning: listening on {host}: other machines can reach this server over plain HTTP (not "
+                "encrypted); every API call needs the token, and the page asks for it"
+            )
+        if app.requeued:
+            say(f"{len(app.requeued)} interrupted job(s) queued again")
+        _sigterm_as_interrupt()
+        app.worker.start()
         server.serve_forever()
     finally:
-        server.server_close()
-        app.worker.stop()
+        if server is not None:
+            server.server_close()
+        app.close()
