@@ -25,7 +25,7 @@ import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
-from nvp.artifact import LOAD_ERRORS, check_arrays_file, file_sha256, read_manifest, write_json
+from nvp.artifact import LOAD_ERRORS, file_sha256, write_json
 from nvp.errors import FormatError, NvpError
 
 FORMAT = "nvp.person_bundle"
@@ -39,11 +39,14 @@ FILES = {
     "renderer": "renderer",
 }
 MEMBER_ARTIFACTS = {
-    "tracked": ("tracked/tracked.json", "tracked_sequence", (1,)),
-    "style": ("style.json", "person_map", (1, 2, 3, 4, 5)),
-    "renderer": ("renderer/renderer.json", "renderer", (3, 4, 5, 6)),
+    "tracked": ("tracked/tracked.json", "tracked_sequence"),
+    "style": ("style.json", "person_map"),
+    "renderer": ("renderer/renderer.json", "renderer"),
 }
-"""Bundle member → (manifest path in the bundle, artifact kind, accepted versions), checked on load."""
+"""Bundle member → (manifest path in the bundle, artifact kind), checked on load of a bundle made before its
+manifest recorded every file's checksum (which versions a member may have, its own loader checks)."""
+MOUTHS = ("renderer/mouths.json", "mouth_bank")
+"""The mouth bank (optional member of the renderer), checked like :data:`MEMBER_ARTIFACTS`."""
 
 
 @dataclass(frozen=True)
@@ -66,8 +69,8 @@ class PersonBundle:
     @classmethod
     def load(cls, root: str | Path, verify: bool = True) -> PersonBundle:
         """Open a bundle, checking its format, version, face-model hash and every member: present, and
-        (``verify``) the arrays of each at the size and sha256 their manifests record, the target video at
-        its recorded size — a truncated or emptied file is reported here, not as a crash later."""
+        (``verify``, :meth:`check`) every file the manifest lists at the size and sha256 it records — a
+        truncated, emptied or altered file is reported here, naming it, not as a crash later."""
         from nvp.face_model import default_face_model
 
         root = Path(root)
@@ -87,34 +90,71 @@ class PersonBundle:
         bundle = cls(root, m)
         for key in FILES:
             if not bundle.path(key).exists():
-                raise FormatError(f"{root} is incomplete: {m['files'][key]} missing")
+                raise bundle.damaged(m["files"][key], "is missing")
         if verify:
             bundle.check()
         return bundle
 
-    def check(self) -> None:
-        """Raise :class:`FormatError` naming the first damaged member (arrays truncated, emptied or
-        altered; the target video shorter than recorded)."""
-        for key, (rel, kind, versions) in MEMBER_ARTIFACTS.items():
+    def damaged(self, part: str, what: str) -> FormatError:
+        """The error for a damaged ``part`` (a path in the bundle): "the bundle is damaged: <part> …"."""
+        return FormatError(f"{self.root}: the bundle is damaged: {part} {what}; run nvp fit again")
+
+    def check(self) -> int:
+        """Check every file the manifest lists (``checksums``: path in the bundle → bytes and sha256,
+        recorded when the bundle was published) and return how many; raise :class:`FormatError` naming the
+        first damaged one (missing, cut short, emptied or altered). Bundles made before nvp recorded
+        checksums are checked member by member: each artifact's arrays at the size and sha256 its manifest
+        records (the mouth bank included) and the target video against the input's sha256."""
+        sums = self.manifest.get("checksums")
+        if isinstance(sums, dict):
+            for rel, facts in sums.items():
+                self._check_file(rel, facts)
+            return len(sums)
+        members = dict(MEMBER_ARTIFACTS)
+        if (self.root / MOUTHS[0]).exists():
+            members["mouths"] = MOUTHS
+        for rel, kind in members.values():
             js = self.root / rel
             try:
-                check_arrays_file(js, read_manifest(js, kind, versions))
-            except FormatError as e:
-                raise FormatError(f"{self.root} is damaged ({key}): {e}; run nvp fit again") from e
-        size = self.manifest.get("target", {}).get("bytes")
-        target = self.path("target")
-        if size is not None and target.stat().st_size != size:
-            raise FormatError(
-                f"{self.root} is damaged (target): {target.name} has {target.stat().st_size} bytes, "
-                f"the bundle recorded {size}; run nvp fit again"
-            )
+                m = json.loads(js.read_text())
+            except LOAD_ERRORS as e:
+                raise self.damaged(rel, f"(not an nvp manifest: {e})") from e
+            if not isinstance(m, dict) or m.get("format") != f"nvp.{kind}":
+                raise self.damaged(rel, f"(expected an nvp.{kind} manifest)")
+            arrays = Path(rel).parent / Path(str(m.get("arrays", Path(rel).with_suffix(".npz").name))).name
+            self._check_file(arrays.as_posix(), {k: m[k] for k in ("bytes", "sha256") if k in m})
+        target = self.manifest.get("target", {})
+        facts = {"bytes": target.get("bytes"), "sha256": self.manifest.get("input_sha256")}
+        self._check_file(self.manifest["files"]["target"], {k: v for k, v in facts.items() if v})
+        return len(members) * 2 + 1
+
+    def _check_file(self, rel: str, facts: dict) -> None:
+        f = self.root / rel
+        if not f.is_file():
+            raise self.damaged(rel, "is missing")
+        size = f.stat().st_size
+        if "bytes" in facts and size != facts["bytes"]:
+            cut = " (cut short)" if size < facts["bytes"] else ""
+            raise self.damaged(rel, f"has {size} bytes, the fit wrote {facts['bytes']}{cut}")
+        if "sha256" in facts and file_sha256(f) != facts["sha256"]:
+            raise self.damaged(rel, "is not the file the fit wrote (its sha256 differs)")
+
+
+def checksums(folder: Path) -> dict[str, dict]:
+    """Path in ``folder`` → ``{"bytes", "sha256"}`` of every file in it but the bundle's manifest, its
+    progress record and hidden (temporary) files: what :meth:`PersonBundle.check` verifies."""
+    sums = {}
+    for f in sorted(folder.rglob("*")):
+        if f.is_file() and f.name not in (MANIFEST, PROGRESS) and not f.name.startswith("."):
+            sums[f.relative_to(folder).as_posix()] = {"bytes": f.stat().st_size, "sha256": file_sha256(f)}
+    return sums
 
 
 def _read_bundle_manifest(js: Path) -> dict:
     try:
         m = json.loads(js.read_text())
     except LOAD_ERRORS as e:
-        raise FormatError(f"cannot read {js}: {e}") from e
+        raise FormatError(f"cannot read {js} (the bundle's manifest is damaged?): {e}") from e
     if not isinstance(m, dict) or m.get("format") != FORMAT:
         raise FormatError(
             f"{js}: expected format {FORMAT}, found {m.get('format') if isinstance(m, dict) else m}"
@@ -274,6 +314,7 @@ class BundleBuilder:
         m["input_sha256"] = self.progress.get("input_sha256")
         m["config"] = self.progress.get("config", {})
         m.setdefault("target", {})["bytes"] = self.path("target").stat().st_size
+        m["checksums"] = checksums(self.work)
         write_json(self.work / MANIFEST, m)
         self._progress_path.unlink()  # from here on the partial folder is a complete bundle
         recover(self.root)  # the swap; a run killed in it is finished by the next one the same way

@@ -119,19 +119,53 @@ def test_fitting_again_reuses_a_finished_bundle(fitted, demo_clip, tmp_path, mon
     assert fit(demo_clip.path, p, FitConfig(steps=2), progress=False).root == p
 
 
-@pytest.mark.parametrize("member", ["tracked/tracked.npz", "style.npz", "renderer/renderer.npz"])
+MEMBERS = ["tracked/tracked.npz", "style.npz", "renderer/renderer.npz"]
+EVERY_FILE = [
+    "tracked/tracked.json",
+    "style.json",
+    "renderer/renderer.json",
+    "renderer/mouths.json",
+    "renderer/mouths.npz",
+    "target.mp4",
+]
+
+
+def damage_file(f, damage):
+    """Cut ``f`` short, empty it, or fill it with junk of the same size."""
+    data = f.read_bytes()
+    junk = np.random.default_rng(1).integers(0, 256, len(data), dtype=np.uint8).tobytes()
+    f.write_bytes({"truncate": data[: len(data) // 2], "empty": b"", "junk": junk}[damage])
+
+
+@pytest.mark.parametrize("member", MEMBERS)
 @pytest.mark.parametrize("damage", ["truncate", "empty"])
 def test_a_damaged_bundle_is_reported_not_crashed_on(fitted, tmp_path, member, damage):
     p = copy_of(fitted, tmp_path)
-    f = p / member
-    data = f.read_bytes()
-    f.write_bytes(data[: len(data) // 2] if damage == "truncate" else b"")
+    damage_file(p / member, damage)
     with pytest.raises(FormatError, match="damaged"):
         PersonBundle.load(p)
     assert_one_line_error(nvp("info", p), "damaged")
     wav = tmp_path / "s.wav"
     sf.write(wav, 0.3 * np.random.default_rng(0).standard_normal(16000).astype(np.float32), 16000)
     assert_one_line_error(nvp("dub", wav, "--person", p, "-o", tmp_path / "x.mp4"), "damaged")
+    assert not (tmp_path / "x.mp4").exists()
+
+
+@pytest.mark.parametrize("member", EVERY_FILE + MEMBERS)
+@pytest.mark.parametrize("damage", ["truncate", "empty", "junk"])
+def test_info_and_dub_check_every_file_of_the_bundle_and_name_the_damaged_one(
+    fitted, tmp_path, capsys, member, damage
+):
+    p = copy_of(fitted, tmp_path)
+    assert (p / member).is_file()
+    assert run_cli(capsys, "info", p)[0] == 0  # undamaged: fine
+    damage_file(p / member, damage)
+    assert_refused(run_cli(capsys, "info", p), "the bundle is damaged", member)
+    wav = tmp_path / "s.wav"
+    sf.write(wav, 0.3 * np.random.default_rng(0).standard_normal(16000).astype(np.float32), 16000)
+    assert_refused(
+        run_cli(capsys, "dub", wav, "--person", p, "-o", tmp_path / "x.mp4"), "the bundle is damaged", member
+    )
     assert not (tmp_path / "x.mp4").exists()
 
 
@@ -276,3 +310,17 @@ def test_fit_refuses_to_replace_the_bundle_of_another_video_unless_forced(
         app_fit.fit(other, p, app_fit.FitConfig(steps=2), progress=False, force=True)
     with pytest.raises(Building):  # the same video with other settings is fitted again without --force
         app_fit.fit(demo_clip.path, p, app_fit.FitConfig(steps=3), progress=False)
+
+
+@pytest.mark.parametrize("member", ["renderer/mouths.npz", "target.mp4", "style.npz"])
+def test_a_bundle_made_before_checksums_is_still_checked_file_by_file(fitted, tmp_path, member):
+    import json
+
+    p = copy_of(fitted, tmp_path)
+    m = json.loads((p / "bundle.json").read_text())
+    del m["checksums"]
+    (p / "bundle.json").write_text(json.dumps(m))
+    PersonBundle.load(p)
+    damage_file(p / member, "junk")
+    with pytest.raises(FormatError, match=f"the bundle is damaged: {member}"):
+        PersonBundle.load(p)
