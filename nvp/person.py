@@ -286,35 +286,55 @@ def voiced_frames(video: Path, fps: float, num_frames: int) -> np.ndarray:
     return frame_speech_probability(audio, 16000, fps, num_frames) >= 0.5
 
 
+PAUSE_TIMING_MIN_FRAMES = 50
+"""Pause frames (2 s at 25 fps) from which the footage's pauses decide *when* the lips rest in a pause
+(:attr:`PersonStyle.pause_open`, :attr:`PersonStyle.pause_close_after_s`); with fewer, one mouth holds
+every pause (their median pause mouth). Chosen on the validation people (``scripts/eval_lipsync.py --set
+validation --pause-timing-min-frames N``); see docs/experiments/lip-sync.md."""
+
+
 def pause_rest(
-    expression: np.ndarray, gap: np.ndarray, voiced: np.ndarray, fps: float, gap_of
-) -> tuple[np.ndarray, np.ndarray, float] | None:
+    expression: np.ndarray,
+    gap: np.ndarray,
+    voiced: np.ndarray,
+    fps: float,
+    gap_of,
+    timing_min_frames: int = PAUSE_TIMING_MIN_FRAMES,
+) -> tuple[np.ndarray, np.ndarray | None, float] | None:
     """How this person holds the mouth in the pauses of their footage: ``(rest, open, close_after_s)``.
 
-    ``rest`` ``(K_exp,)``: the mean of their pause frames whose inner-lip gap is at or below their resting
-    level (:func:`nvp.metrics.closed_level` at 0.3), or their closed lips when fewer than 3 are;
-    ``open`` ``(K_exp,)``: the median of their other pause frames (``rest`` when fewer than 3), moved
-    towards ``rest`` until it is no wider than their median speaking gap; ``close_after_s``: the delay into
-    a pause after which the lips rest, chosen so that their pauses, resting from that delay on, would rest
-    as often as they do (inf when they never rest in a pause, 0 when they always do). None with fewer than
-    ``PAUSE_MIN_FRAMES`` pause frames. Args: ``expression`` ``(T, K_exp)``, ``gap`` ``(T,)``, ``voiced``
-    ``(T,)`` bool, ``gap_of``: inner-lip gaps ``(N,)`` of expressions ``(N, K_exp)``.
+    With at least ``timing_min_frames`` pause frames: ``rest`` ``(K_exp,)`` is the mean of their pause
+    frames whose inner-lip gap is at or below their resting level (:func:`nvp.metrics.closed_level` at
+    0.3), or their closed lips when fewer than 3 are; ``open`` ``(K_exp,)`` the median of their other pause
+    frames (``rest`` when fewer than 3); ``close_after_s`` the delay into a pause after which the lips rest,
+    chosen so that their pauses, resting from that delay on, would rest as often as they do (inf when they
+    never rest in a pause, 0 when they always do). With fewer: ``rest`` is the median of their pause frames,
+    ``open`` None. Either mouth is moved towards their closed lips until it is no wider than their median
+    speaking gap. None with fewer than ``PAUSE_MIN_FRAMES`` pause frames. Args: ``expression``
+    ``(T, K_exp)``, ``gap`` ``(T,)``, ``voiced`` ``(T,)`` bool, ``gap_of``: inner-lip gaps ``(N,)`` of
+    expressions ``(N, K_exp)``.
     """
     from nvp.metrics import pause_mask
 
     pauses = pause_mask(voiced, fps, PAUSE_MIN_S)
     if pauses.sum() < PAUSE_MIN_FRAMES:
         return None
+    speaking = np.median(gap[voiced & ~pauses] if np.any(voiced & ~pauses) else gap)
+    closed = closed_mouth(expression, gap)
+
+    def no_wider(mouth: np.ndarray, towards: np.ndarray) -> np.ndarray:
+        """The widest point on the way from ``towards`` to ``mouth`` that is no wider than their speech."""
+        steps = np.linspace(0.0, 1.0, 65)[:, None]
+        along = gap_of((towards + steps * (mouth - towards)).astype(np.float32))
+        fits = np.flatnonzero(along <= speaking)
+        return (towards + steps[fits[-1] if len(fits) else 0] * (mouth - towards)).astype(np.float32)
+
+    if pauses.sum() < timing_min_frames:
+        return no_wider(np.median(expression[pauses], 0), closed), None, 0.0
     resting = gap <= closed_level(gap, 0.3)
     shut, apart = pauses & resting, pauses & ~resting
-    rest = expression[shut].mean(0) if shut.sum() >= 3 else closed_mouth(expression, gap)
-    open_ = np.median(expression[apart], 0) if apart.sum() >= 3 else rest
-    speaking = np.median(gap[voiced & ~pauses] if np.any(voiced & ~pauses) else gap)
-    # never wider than their speech: the widest point on the way from rest to open that is not
-    steps = np.linspace(0.0, 1.0, 65)[:, None]
-    along = gap_of((rest + steps * (open_ - rest)).astype(np.float32))
-    fits = np.flatnonzero(along <= speaking)
-    open_ = rest + steps[fits[-1] if len(fits) else 0] * (open_ - rest)
+    rest = no_wider(expression[shut].mean(0), closed) if shut.sum() >= 3 else closed
+    open_ = no_wider(np.median(expression[apart], 0), rest) if apart.sum() >= 3 else rest
     # pause lengths in frames; the delay d rests sum(max(L - d, 0)) frames: match the resting share
     edges = np.diff(np.concatenate([[0], pauses.astype(np.int8), [0]]))
     lengths = np.flatnonzero(edges == -1) - np.flatnonzero(edges == 1)
@@ -325,7 +345,7 @@ def pause_rest(
         ds = np.arange(int(lengths.max()) + 1)
         rested = np.maximum(lengths[None] - ds[:, None], 0).sum(1)
         delay = float(ds[np.argmin(np.abs(rested - target))]) / fps
-    return rest.astype(np.float32), np.asarray(open_, np.float32), delay
+    return rest, open_, delay
 
 
 RANGE_GAIN_MAX = 2.0
@@ -436,13 +456,16 @@ def style_from_sample(
     max_gain: float = RANGE_GAIN_MAX,
     opening: OpeningModel | None = None,
     opening_weight: float = OPENING_WEIGHT,
+    pause_timing_min_frames: int = PAUSE_TIMING_MIN_FRAMES,
 ) -> PersonStyle:
     """A person's style from their tracked video.
 
     * person map: closed-form ridge map on all valid frames, widened so that the spread of its mouth
       openings on these frames matches the tracked one (:func:`range_calibrated` with ``max_gain``);
     * rest expression: the person's mouth in their pauses when ``voiced`` ``(T,)`` (see
-      :func:`voiced_frames`) shows enough of them, else their most closed mouth. Measured on the
+      :func:`voiced_frames`) shows enough of them (:func:`pause_rest`; with ``pause_timing_min_frames``
+      pause frames or more, also when in a pause their lips come to rest), else their most closed mouth.
+      Measured on the
       validation people of ``scripts/data_split.json`` (``scripts/eval_lipsync.py``): pause frames at rest
       0.85 → 0.06 (real 0.09), opening correlation 0.40 → 0.49;
     * closed expression: their closed lips while speaking (:func:`closed_mouth`), when the network has a
@@ -463,7 +486,8 @@ def style_from_sample(
     pause_open, close_after = None, 0.0
     if voiced is not None:
         gap_of = lambda e: model.inner_lip_gap(identity, e)  # noqa: E731
-        in_pause = pause_rest(expression, gap, voiced[ok], sample.tracked.fps, gap_of)
+        fps = sample.tracked.fps
+        in_pause = pause_rest(expression, gap, voiced[ok], fps, gap_of, pause_timing_min_frames)
         if in_pause is not None:
             (rest, pause_open, close_after), kind = in_pause, "pauses"
     closed = None

@@ -125,7 +125,7 @@ def ctc_align(log_posteriors: np.ndarray, tokens: list[int], blank: np.ndarray) 
     path = np.empty(n, int)
     for t in range(n - 1, -1, -1):
         path[t] = s
-        s -= back[t, s]
+        s -= int(back[t, s])
     spans = np.full((p, 2), -1)
     for t, st in enumerate(path):
         if st % 2:

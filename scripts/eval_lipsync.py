@@ -73,6 +73,7 @@ from nvp.opening import OpeningModel
 from nvp.person import (
     CLOSURE_RAMP,
     OPENING_WEIGHT,
+    PAUSE_TIMING_MIN_FRAMES,
     RANGE_GAIN_MAX,
     VideoSample,
     style_expressions,
@@ -153,6 +154,7 @@ def evaluate_video(
         max_gain=args.range_gain_max,
         opening=opening,
         opening_weight=args.opening_weight,
+        pause_timing_min_frames=args.pause_timing_min_frames,
     )
     rest_gap = float(model.inner_lip_gap(seq.identity, style.rest_expression[None])[0])
     rest_tol = 0.05 * float(np.nanpercentile(gap_all[tr], 95))
@@ -288,6 +290,12 @@ def main(argv: list[str] | None = None) -> int:
         "--range-gain-max", type=float, default=RANGE_GAIN_MAX, help="widest person-map gain (1: no widening)"
     )
     ap.add_argument("--opening", type=Path, default=ASSETS / "opening_whisper.json", help="opening model")
+    ap.add_argument(
+        "--pause-timing-min-frames",
+        type=int,
+        default=PAUSE_TIMING_MIN_FRAMES,
+        help="pause frames from which the footage decides when the lips rest in a pause",
+    )
     ap.add_argument(
         "--opening-weight",
         type=float,

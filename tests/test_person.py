@@ -243,6 +243,20 @@ def test_pauses_rest_as_the_person_rests_in_their_footage(face_model, rests):
         assert real_rests == 0 and delay == np.inf
 
 
+def test_with_few_pauses_one_mouth_holds_them_no_wider_than_speech(face_model):
+    from nvp.person import pause_rest
+
+    fps, expr, gap, voiced, k = _footage_with_pauses(face_model, lambda j: 1.6)
+    ident = np.zeros(face_model.num_id, np.float32)
+    gap_of = lambda e: face_model.inner_lip_gap(ident, e)  # noqa: E731
+    rest, open_, delay = pause_rest(expr, gap, voiced, fps, gap_of, timing_min_frames=10**6)
+    assert open_ is None and delay == 0
+    # their pauses are wider than their speech: the rest is cut back to their median speaking opening
+    np.testing.assert_allclose(gap_of(rest[None])[0], np.median(gap[voiced]), rtol=0.1)
+    assert gap_of(rest[None])[0] <= np.median(gap[voiced])
+    assert pause_rest(expr, gap, np.ones_like(voiced), fps, gap_of) is None  # no pause: the caller decides
+
+
 def test_a_style_that_rests_over_time_round_trips_and_needs_the_frame_rate(tmp_path):
     from nvp.person import apply_style
 

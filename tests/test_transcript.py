@@ -105,3 +105,12 @@ def test_dub_refuses_an_unreadable_transcript_or_one_for_several_files(tmp_path)
     )
     assert_one_line_error(proc, "one audio file")
     assert not (tmp_path / "o.mp4").exists() and not (tmp_path / "out").exists()
+
+
+def test_a_long_transcript_aligns_past_the_first_hundred_states():
+    tokens = [1 + (i % 3) for i in range(150)]
+    path = [x for tok in tokens for x in (0, tok, tok)]
+    lp = _posteriors(path)
+    spans = ctc_align(lp, tokens, lp[:, 0])
+    np.testing.assert_array_equal(spans[:, 0], np.arange(150) * 3 + 1)
+    np.testing.assert_array_equal(spans[:, 1], np.arange(150) * 3 + 2)
