@@ -547,11 +547,11 @@ def read_audio(
     chunks: list[np.ndarray] = []
 
     def collect(frames: list[Any]) -> None:
-        for f in frames:
-            planes = f.to_ndarray()  # planar float: (channels, samples)
-            if mono:
-                planes = planes[:1] if planes.shape[0] == 1 else planes.mean(axis=0, dtype=np.float32)[None]
-            chunks.append(planes.T)
+        for f in frames:  # packed float, (samples, channels): PyAV crashes reading 8 or more planes
+            samples = f.to_ndarray().reshape(f.samples, -1)
+            if mono and samples.shape[1] > 1:
+                samples = samples.mean(axis=1, dtype=np.float32, keepdims=True)
+            chunks.append(samples)
 
     with _open_input(p, "audio") as container:
         if not container.streams.audio:
@@ -572,7 +572,7 @@ def read_audio(
                         collect(resampler.resample(None))
                     # Resample keeping the channels and average them here: FFmpeg's own downmix to mono
                     # scales stereo by 1/sqrt(2) per channel (+3 dB for correlated channels, clipping).
-                    resampler = av.AudioResampler(format="fltp", layout=frame.layout.name, rate=sample_rate)
+                    resampler = av.AudioResampler(format="flt", layout=frame.layout.name, rate=sample_rate)
                     setup = key
                 collect(resampler.resample(frame))
             if resampler is not None:
@@ -592,8 +592,57 @@ def read_audio(
         expected = round(stated * sample_rate)
         if expected < len(audio) <= expected + sample_rate // 10:
             audio = audio[:expected]
+    bad = ~np.isfinite(audio)
+    if bad.any():
+        first = int(np.flatnonzero(bad if bad.ndim == 1 else bad.any(1))[0])
+        raise MediaError(
+            f"cannot use the audio of '{p}': {int(bad.sum())} samples are not numbers (NaN or infinite), "
+            f"the first at {first / sample_rate:.2f} s; export it again (e.g. as 16-bit wav)"
+        )
     np.clip(audio, -1.0, 1.0, out=audio)
     return audio
+
+
+AAC_RATES = (7350, 8000, 11025, 12000, 16000, 22050, 24000, 32000, 44100, 48000, 64000, 88200, 96000)
+"""Sample rates (Hz) AAC can store; :class:`VideoWriter` resamples other rates (:func:`storable_audio`)."""
+AAC_MAX_CHANNELS = 8
+"""Most audio channels the writer stores (7.1); more are mixed to mono (their order is unknown)."""
+
+
+def aac_rate(rate: int) -> int:
+    """The AAC rate audio at ``rate`` Hz is stored at: ``rate`` itself when AAC can store it, else the
+    nearest higher one (22000 → 22050, nothing of the signal lost), else the highest (96000)."""
+    higher = [r for r in AAC_RATES if r >= rate]
+    return higher[0] if higher else AAC_RATES[-1]
+
+
+def storable_audio(audio: np.ndarray, rate: int) -> tuple[np.ndarray, int]:
+    """``(audio, rate)`` as an mp4's AAC track can hold them: resampled to :func:`aac_rate` (FFmpeg's
+    resampler) when AAC cannot store ``rate``, and mixed to mono when it has more channels than
+    :data:`AAC_MAX_CHANNELS`; returned unchanged otherwise. ``audio``: ``(n,)`` or ``(n, channels)``
+    float32."""
+    a = np.asarray(audio, dtype=np.float32)
+    if a.ndim == 2 and a.shape[1] > AAC_MAX_CHANNELS:
+        logger.warning("the audio has %d channels, more than an mp4 keeps: mixed to mono", a.shape[1])
+        a = a.mean(1)
+    new = aac_rate(int(rate))
+    if new == rate or len(a) == 0:
+        return a, int(rate)
+    logger.info("audio at %d Hz, which AAC cannot store, resampled to %d Hz", rate, new)
+    channels = 1 if a.ndim == 1 else a.shape[1]
+    layout = AUDIO_LAYOUTS[channels]
+    resampler = av.AudioResampler(format="flt", layout=layout, rate=new)
+    frames = a.reshape(len(a), channels)
+    out: list[np.ndarray] = []
+    step = int(rate)  # a second per frame
+    for start in range(0, len(frames), step):
+        chunk = np.ascontiguousarray(frames[start : start + step]).reshape(1, -1)
+        frame = av.AudioFrame.from_ndarray(chunk, format="flt", layout=layout)
+        frame.sample_rate, frame.pts, frame.time_base = int(rate), start, Fraction(1, int(rate))
+        out += [f.to_ndarray().reshape(f.samples, channels) for f in resampler.resample(frame)]
+    out += [f.to_ndarray().reshape(f.samples, channels) for f in resampler.resample(None)]
+    b = np.concatenate(out) if out else np.zeros((0, channels), np.float32)
+    return (b[:, 0] if a.ndim == 1 else b).astype(np.float32), new
 
 
 # ------------------------------------------------------------------------------------------------ writer
@@ -651,6 +700,13 @@ class VideoWriter:
             raise ValueError(f"width and height must be positive, got {width}x{height}")
         if audio_rate <= 0:
             raise ValueError(f"audio_rate must be positive, got {audio_rate}")
+        if audio is not None and not live:
+            audio, audio_rate = storable_audio(audio, audio_rate)
+        elif audio is not None and aac_rate(audio_rate) != audio_rate:
+            raise MediaError(
+                f"cannot write video '{path}': AAC cannot store audio at {audio_rate} Hz "
+                f"(it stores {', '.join(map(str, AAC_RATES))} Hz)"
+            )
         self.path = os.fspath(path)
         self.fps = _to_fraction(fps)
         self.width = int(width)
@@ -829,7 +885,8 @@ class VideoWriter:
             if stop > self._audio_pos:
                 b = self._audio_base
                 chunk[:, : stop - self._audio_pos] = self._audio[:, self._audio_pos - b : stop - b]
-            af = av.AudioFrame.from_ndarray(chunk, format="fltp", layout=layout)
+            packed = np.ascontiguousarray(chunk.T).reshape(1, -1)  # the encoder's resampler makes planes
+            af = av.AudioFrame.from_ndarray(packed, format="flt", layout=layout)
             af.sample_rate = self._audio_rate
             af.pts = self._audio_pos
             af.time_base = Fraction(1, self._audio_rate)

@@ -142,6 +142,83 @@ def _espeak(text: str, program: str, voice: str | None, length_scale: float) -> 
     return Speech(audio.astype(np.float32), 22050, "espeak-ng", lang, lang)
 
 
+_CYRILLIC, _ARABIC, _DEVANAGARI = {"CYRILLIC"}, {"ARABIC"}, {"DEVANAGARI"}
+SCRIPTS = {
+    **dict.fromkeys(("ru", "uk", "bg", "sr", "mk", "be", "kk", "ky", "mn", "tt", "ba"), _CYRILLIC),
+    **dict.fromkeys(("ar", "fa", "ur", "ps", "sd", "ug"), _ARABIC),
+    **dict.fromkeys(("hi", "mr", "ne", "sa", "kok"), _DEVANAGARI),
+    **dict.fromkeys(("zh", "cmn", "yue", "hak"), {"CJK"}),
+    "ja": {"CJK", "HIRAGANA", "KATAKANA"},
+    "ko": {"HANGUL", "CJK"},
+    "el": {"GREEK"},
+    "he": {"HEBREW"},
+    "yi": {"HEBREW"},
+    "bn": {"BENGALI"},
+    "as": {"BENGALI"},
+    "pa": {"GURMUKHI"},
+    "gu": {"GUJARATI"},
+    "or": {"ORIYA"},
+    "ta": {"TAMIL"},
+    "te": {"TELUGU"},
+    "kn": {"KANNADA"},
+    "ml": {"MALAYALAM"},
+    "si": {"SINHALA"},
+    "th": {"THAI"},
+    "lo": {"LAO"},
+    "my": {"MYANMAR"},
+    "km": {"KHMER"},
+    "ka": {"GEORGIAN"},
+    "hy": {"ARMENIAN"},
+    "am": {"ETHIOPIC"},
+}
+"""Language (espeak-ng / piper code, before any ``-`` or ``_``) → the Unicode scripts its letters are
+written in besides Latin (which every voice reads: names, acronyms). Languages not listed are written in
+Latin letters only."""
+
+
+def _script(ch: str) -> str:
+    """The Unicode script of a letter, from its name ("CJK UNIFIED IDEOGRAPH-4E16" → CJK)."""
+    import unicodedata
+
+    words = unicodedata.name(ch, "UNKNOWN").split()
+    return words[1] if words[0] in ("FULLWIDTH", "HALFWIDTH") and len(words) > 1 else words[0]
+
+
+def check_speakable(text: str, language: str, voice: str) -> None:
+    """Refuse ``text`` that has words in a script ``voice`` (speaking ``language``, an espeak-ng or piper
+    language code) cannot read — piper and espeak-ng say nothing or spell such words letter by letter,
+    e.g. Chinese or Arabic text given to an English voice."""
+    import re
+
+    code = re.split(r"[-_]", language.lower())[0]
+    readable = {"LATIN"} | SCRIPTS.get(code, set())
+    unreadable: dict[str, list[str]] = {}
+    for word in re.findall(r"[^\W\d_]+", text):
+        scripts = {_script(c) for c in word if not _script(c).startswith("MODIFIER")} - readable
+        for script in scripts:
+            unreadable.setdefault(script if script == "CJK" else script.capitalize(), []).append(word)
+    if unreadable:
+        script, words = next(iter(unreadable.items()))
+        names = " and ".join(f"{k} script" for k in unreadable)
+        raise NvpError(
+            f"the voice {voice} ({language}) cannot read words in {names} (e.g. {words[0]!r}); write the "
+            "text in the voice's language, or choose a voice that speaks the text's (--voice, --list-voices)"
+        )
+
+
+def _voice_language(voice: str | None) -> tuple[str, str]:
+    """``(name, language)`` of a piper voice (its config's espeak-ng voice, else its language code)."""
+    import json
+
+    name, _, config = voice_files(voice)
+    try:
+        c = json.loads(config.read_text())
+        language = (c.get("espeak") or {}).get("voice") or (c.get("language") or {}).get("code")
+    except (OSError, ValueError, AttributeError):
+        language = None  # a damaged config: loading the voice says so
+    return name, str(language or "en-us")
+
+
 def synthesize(
     text: str, length_scale: float = 1.0, voice: str | None = None, engine: str = "auto"
 ) -> Speech:
@@ -161,12 +238,14 @@ def synthesize(
     if engine not in ("auto", "piper", "espeak-ng"):
         raise NvpError(f"unknown speech engine {engine!r}; choose auto, piper or espeak-ng")
     if engine in ("auto", "piper") and have_piper():
+        check_speakable(text, *_voice_language(voice)[::-1])  # before any work
         return _piper(text, voice, length_scale)
     if engine == "piper":
         raise NvpError(f"piper is not installed; {INSTALL_HINT}")
     program = espeak_program()
     if program is None:
         raise NvpError(f"no text to speech is installed; {INSTALL_HINT}")
+    check_speakable(text, voice or "en-us", voice or "en-us")
     if engine == "auto":
         log.warning("piper is not installed: speaking with espeak-ng (robotic voice); %s", INSTALL_HINT)
     return _espeak(text, program, voice, length_scale)

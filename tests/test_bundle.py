@@ -324,3 +324,115 @@ def test_a_bundle_made_before_checksums_is_still_checked_file_by_file(fitted, tm
     damage_file(p / member, "junk")
     with pytest.raises(FormatError, match=f"the bundle is damaged: {member}"):
         PersonBundle.load(p)
+
+
+def speech(seconds, rate=22050, seed=0):
+    """Synthetic voiced speech (the demo's voice), which the voice-activity detector takes for speech."""
+    from nvp.app.demo_voice import speech_script, synth_voice
+
+    rng = np.random.default_rng(seed)
+    return synth_voice(speech_script(seconds, rng), seconds, rng, rate).astype(np.float32)
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_dub_refuses_audio_with_samples_that_are_not_numbers_before_any_work(
+    fitted, tmp_path, capsys, monkeypatch, bad
+):
+    import renderer.render
+
+    audio = speech(1.0)
+    audio[11025:11030] = bad
+    wav = tmp_path / "s.wav"
+    sf.write(wav, audio, 22050, subtype="FLOAT")
+    monkeypatch.setattr(renderer.render, "FrameRenderer", lambda *a, **k: pytest.fail("rendered"))
+    out = tmp_path / "o.mp4"
+    assert_refused(
+        run_cli(capsys, "dub", wav, "--person", fitted, "-o", out), "not numbers", "0.50 s", "s.wav"
+    )
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s.wav"]  # no output, no parts folder
+
+
+def test_dub_of_audio_at_a_rate_aac_cannot_store_is_resampled_before_rendering(fitted, tmp_path, monkeypatch):
+    import renderer.render
+    from nvp.app.dub import dub
+    from nvp.media import VideoWriter, probe_video, read_audio
+
+    wav = tmp_path / "s.wav"
+    sf.write(wav, speech(1.0, 22000), 22000)  # voca's test sentence is at 22,000 Hz
+    rates = []
+    real_writer, real_renderer = VideoWriter.__init__, renderer.render.FrameRenderer
+
+    def writer(self, *a, **k):
+        if k.get("audio") is not None:
+            rates.append(k["audio_rate"])
+        real_writer(self, *a, **k)
+
+    def renderer_(*a, **k):
+        rates.append("render")
+        return real_renderer(*a, **k)
+
+    monkeypatch.setattr(VideoWriter, "__init__", writer)
+    monkeypatch.setattr(renderer.render, "FrameRenderer", renderer_)
+    r = dub(wav, fitted, tmp_path / "o.mp4", progress=False)
+    assert rates == ["render", 22050]  # the join was given audio AAC stores
+    assert probe_video(r.output).audio_sample_rate == 22050
+    assert abs(len(read_audio(r.output, 22050)) - 22050) < 22050 / 25 + 1024
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["o.mp4", "s.wav"]  # no parts left
+
+
+def test_audio_of_any_rate_and_up_to_ten_channels_reads_and_writes(tmp_path):
+    from nvp.media import VideoWriter, probe_video, read_audio, storable_audio
+
+    for channels, rate in [(1, 22000), (2, 100000), (8, 48000), (10, 16000)]:
+        wav = tmp_path / f"a{channels}.wav"
+        data = 0.1 * np.random.default_rng(channels).standard_normal((rate // 2, channels))
+        sf.write(wav, data.astype(np.float32), rate)
+        audio = read_audio(wav, None, mono=False)  # PyAV crashed reading 8 or more planar channels
+        np.testing.assert_allclose(audio.reshape(len(data), -1), data, atol=1e-4)
+        stored, stored_rate = storable_audio(audio, rate)
+        assert stored_rate in (22050, 96000, 48000, 16000) and stored_rate >= min(rate, 96000)
+        assert stored.ndim == (1 if channels in (1, 10) else 2)
+        out = tmp_path / f"v{channels}.mp4"
+        with VideoWriter(out, 25, 32, 32, audio=audio, audio_rate=rate) as w:
+            for _ in range(12):
+                w.write(np.zeros((32, 32, 3), np.uint8))
+        assert probe_video(out).audio_sample_rate == stored_rate
+
+
+def test_fit_warns_about_a_small_face_and_long_stretches_without_one(
+    demo_clip, tmp_path, monkeypatch, caplog
+):
+    import cv2
+
+    from nvp.app import fit as app_fit
+    from nvp.media import VideoWriter, audio_rate, iter_frames, probe_video, read_audio
+
+    fps, rate = probe_video(demo_clip.path).fps, audio_rate(demo_clip.path)
+    frames, audio = list(iter_frames(demo_clip.path)), read_audio(demo_clip.path, None)
+    small = tmp_path / "small.mp4"  # a 64x64 video: a face about 40 px across
+    with VideoWriter(small, fps, 64, 64, audio=audio, audio_rate=rate) as w:
+        for f in frames:
+            w.write(cv2.resize(f, (64, 64), interpolation=cv2.INTER_AREA))
+    gap = tmp_path / "gap.mp4"  # 1.2 s without a face between two of the clip
+    with VideoWriter(gap, fps, 256, 256, audio=np.concatenate([audio] * 3), audio_rate=rate) as w:
+        for f in frames + [np.full_like(frames[0], 90)] * len(frames) + frames:
+            w.write(f)
+
+    class Training(Exception):
+        pass
+
+    def training(*a, **k):
+        raise Training
+
+    monkeypatch.setattr(app_fit, "_train_renderer", training)
+    for video in (small, gap, demo_clip.path):
+        caplog.clear()
+        with pytest.raises(Training):  # the warnings come before the renderer trains
+            app_fit.fit(video, tmp_path / f"p_{video.stem}", app_fit.FitConfig(steps=1), progress=False)
+        small_face = [r.getMessage() for r in caplog.records if "px across" in r.getMessage()]
+        no_face = [r.getMessage() for r in caplog.records if "no face in" in r.getMessage()]
+        assert bool(small_face) == (video == small) and bool(no_face) == (video == gap), caplog.text
+        if video == small:
+            assert str(small) in small_face[0] and "needs a face of 60 px" in small_face[0]
+        if video == gap:
+            assert f"no face in {gap} at 1.2-2.4 s" in no_face[0]

@@ -147,7 +147,7 @@ def dub(
     provenance tags for the output (e.g. how its speech was made); ``transcript``: ``(text, language)`` of
     what the audio says, whose p, b and m then close the lips (:mod:`nvp.transcript`)."""
     from nvp.artifact import check_output_file
-    from nvp.media import audio_rate, frames_at, read_audio
+    from nvp.media import audio_rate, frames_at, read_audio, storable_audio
     from nvp.person import predict_expressions
     from nvp.provenance import synthetic_mark
     from nvp.schedule import target_frame_indices
@@ -160,6 +160,7 @@ def dub(
     bundle = PersonBundle.load(bundle_dir)
     rate = audio_rate(audio_path)
     original = read_audio(audio_path, None, mono=False)
+    original, rate = storable_audio(original, rate)  # before rendering: AAC's rates (22000 Hz → 22050)
     mono = original if original.ndim == 1 else original.mean(1)
     if len(mono) == 0 or not speech_activity(mono, rate):
         raise NvpError(f"{audio_path}: no speech found (silence, noise or music only, or too quiet)")

@@ -136,6 +136,8 @@ def fit(
             seconds=round(time.perf_counter() - t0, 2),
         )
 
+    _warn_about_faces(TrackedSequence.load(builder.path("tracked")), video, cfg.preset)
+
     if not builder.done("style"):
         from nvp.app.corpus import features_cached
         from nvp.audio2exp import default_audio2exp
@@ -300,6 +302,51 @@ def _register(builder: BundleBuilder, cfg: FitConfig, progress: bool) -> dict:
     out = registered(seq, default_face_model(), offsets)
     out.save(builder.path("tracked"))
     return out.info["registration"]
+
+
+NO_FACE_WARN_S = 1.0
+"""Stretches of the target this long or longer without a face are reported (with their times)."""
+
+
+def _warn_about_faces(seq: TrackedSequence, video: Path, preset: str) -> None:
+    """Warn, before the renderer trains, about a face too small for ``preset`` (a renderer crop is 1.6
+    face sizes: a face under ``crop / 3.2`` pixels is enlarged more than twice, and its landmarks are too
+    coarse for a steady mouth) and about stretches of :data:`NO_FACE_WARN_S` or more without a face (a
+    dub replays them with a guessed face)."""
+    from renderer.preset import get_preset
+
+    crop = get_preset(preset).crop
+    found = ~np.isnan(seq.landmarks[..., 0]).all(1)
+    if found.any():
+        pts = seq.landmarks[found]
+        size = float(np.median((np.nanmax(pts, 1) - np.nanmin(pts, 1)).max(1)))
+        least = crop / 3.2
+        if size < least:
+            log.warning(
+                "the face in %s is only about %.0f px across; the %s preset renders it in %d px crops and "
+                "needs a face of %.0f px or more: expect a blurry, unsteady mouth (film closer or at a "
+                "higher resolution; %s)",
+                video,
+                size,
+                preset,
+                crop,
+                least,
+                GOOD_TARGET,
+            )
+    edges = np.diff(np.concatenate([[0], (~found).astype(np.int8), [0]]))
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    long = [(a, b) for a, b in zip(starts, ends, strict=True) if (b - a) / seq.fps >= NO_FACE_WARN_S]
+    if long:
+        times = ", ".join(f"{a / seq.fps:.1f}-{b / seq.fps:.1f} s" for a, b in long[:5])
+        more = f" and {len(long) - 5} more" if len(long) > 5 else ""
+        log.warning(
+            "no face in %s at %s%s (%.0f s in all): a dub replays those frames with a guessed face; cut "
+            "them out for a better person",
+            video,
+            times,
+            more,
+            sum(b - a for a, b in long) / seq.fps,
+        )
 
 
 def _check_speech(video: Path) -> None:
