@@ -475,6 +475,11 @@ def test_claims_are_atomic_and_cancelling_races_are_settled(tmp_path):
     # a job that ended is never overwritten by a late end
     assert not w._end(job.id, "done")
     assert store2.get(job.id).state == "cancelled"
+    # a job claimed as the server stops goes back to the queue unstarted
+    w.stopping.set()
+    late = store2.add(Job("job-000000000002", "dub", "p", [], "out"))
+    w._run(store2.claim())
+    assert store2.get(late.id).state == "queued" and started == []
 
 
 def test_recovery_stops_only_the_jobs_own_leftover_process(tmp_path):

@@ -362,6 +362,9 @@ class Worker(threading.Thread):
             if job.id in self._cancelled:
                 self._end_locked_cancel(job.id)
                 return
+            if self.stopping.is_set():  # claimed as the server stops: back in the queue, not started
+                self.store.update(job.id, ("running",), state="queued", stage="", pid=0)
+                return
             try:
                 proc = subprocess.Popen(
                     self._command(job),

@@ -341,7 +341,11 @@ class Handler(BaseHTTPRequestHandler):
                 raise ApiError(HTTPStatus.BAD_REQUEST, "minutes must be between 0.05 and 240")
         self.app.check_queue()
         upload = self._receive("video")
-        pid, job = self.app.add_person(name, upload, minutes)
+        try:
+            pid, job = self.app.add_person(name, upload, minutes)
+        except BaseException:
+            upload.unlink(missing_ok=True)
+            raise
         self._json({"person": pid, "job": self.app.job_view(job)}, HTTPStatus.CREATED)
 
     def r_thumbnail(self, q, pid) -> None:
