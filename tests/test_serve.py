@@ -559,7 +559,7 @@ def test_say_text_is_never_an_option_and_limits_are_clear(make_client, demo_clip
 
 
 def test_idle_and_surplus_connections_are_closed(make_client):
-    c = make_client(start=False, limits=Limits(request_timeout_s=3, max_connections=2))
+    c = make_client(start=False, limits=Limits(request_timeout_s=8, max_connections=2))
     idle = [socket.create_connection(("127.0.0.1", c.port), timeout=30) for _ in range(2)]
     try:
         idle[0].sendall(b"GET / HTTP/1.0\r\nHost: ")  # half a request, then nothing
