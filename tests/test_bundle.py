@@ -436,3 +436,50 @@ def test_fit_warns_about_a_small_face_and_long_stretches_without_one(
             assert str(small) in small_face[0] and "needs a face of 60 px" in small_face[0]
         if video == gap:
             assert f"no face in {gap} at 1.2-2.4 s" in no_face[0]
+
+
+def test_a_faceless_fit_leaves_nothing_and_names_the_users_file(tmp_path, caplog):
+    from nvp.app.demo_voice import AUDIO_RATE, speech_script, synth_voice
+    from nvp.app.fit import FitConfig, fit
+    from nvp.errors import NoFaceError
+
+    rng = np.random.default_rng(0)
+    whole = clip_with_audio(
+        tmp_path / "whole.mp4", 75, synth_voice(speech_script(3.0, rng), 3.0, rng), AUDIO_RATE
+    )
+    wall = tmp_path / "wall.mp4"  # cut short: its container announces more frames than it holds
+    wall.write_bytes(whole.read_bytes()[: int(whole.stat().st_size * 0.8)])
+    with pytest.raises(NoFaceError) as e:
+        fit(wall, tmp_path / "p", FitConfig(steps=1), progress=False)
+    assert str(wall) in str(e.value) and ".partial" not in str(e.value) and "target.mp4" not in str(e.value)
+    cut = [r.getMessage() for r in caplog.records if "cut short" in r.getMessage()]
+    assert cut and all(str(wall) in m and ".partial" not in m for m in cut), cut
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["wall.mp4", "whole.mp4"]  # no p.partial/ left
+
+
+def test_a_dub_that_fails_on_its_input_leaves_no_parts_an_interrupted_one_keeps_them(
+    fitted, tmp_path, monkeypatch
+):
+    from nvp.app.dub import dub, parts_folder
+    from nvp.errors import MediaError
+    from nvp.media import VideoWriter
+
+    wav = tmp_path / "s.wav"
+    sf.write(wav, speech(1.0), 22050)
+    out = tmp_path / "o.mp4"
+
+    def refused(self, part):
+        raise MediaError(f"cannot write video '{self.path}': the encoder refused it")
+
+    monkeypatch.setattr(VideoWriter, "append", refused)
+    with pytest.raises(MediaError):
+        dub(wav, fitted, out, progress=False)
+    assert not parts_folder(out).exists() and not out.exists()
+
+    def interrupted(self, part):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(VideoWriter, "append", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        dub(wav, fitted, out, progress=False)
+    assert (parts_folder(out) / "key.json").exists() and not out.exists()  # the next run resumes

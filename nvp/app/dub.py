@@ -8,7 +8,8 @@ audio, marked as synthetic.
 The video is encoded in parts of :data:`PART_FRAMES` frames, kept beside the output
 (``.<output name>.nvp-parts/``) until the dub is done and then joined without encoding again: a dub that
 is interrupted (even by ``kill -9``) resumes at its first unfinished part when the same command runs
-again, if the audio, the person bundle and the style are the same (else it starts again).
+again, if the audio, the person bundle and the style are the same (else it starts again). A dub that fails
+on its input removes them (it would fail the same way again).
 """
 
 from __future__ import annotations
@@ -305,9 +306,21 @@ class DubParts:
                     writer.close()
                     writer = None
                     write_json(self._notes(j // PART_FRAMES), {"entries": decided[j - first]})
+        except NvpError as e:
+            self._discard_after(e)
+            raise
         finally:
             if writer is not None:
                 writer.abort()
+
+    def _discard_after(self, error: NvpError) -> None:
+        """A dub that failed on its input (unreadable footage or audio, an encoder refusing it) would fail
+        the same way again: its parts go, nothing is left beside the output. Parts stay for a resume after
+        an interruption and a full disk."""
+        from nvp.artifact import DiskFullError
+
+        if not isinstance(error, DiskFullError):
+            shutil.rmtree(self.root, ignore_errors=True)
 
     def join(self, output: Path, seq: TrackedSequence, **audio_and_tags) -> None:
         """Writes ``output`` (atomically): the parts' video, copied, with the audio and tags
@@ -315,7 +328,13 @@ class DubParts:
         from nvp.media import VideoWriter
 
         videos = [self._video(i) for i in range(-(-self.frames // PART_FRAMES))]
-        with VideoWriter(output, seq.fps, seq.width, seq.height, template=videos[0], **audio_and_tags) as vw:
-            for video in videos:
-                vw.append(video)
+        try:
+            with VideoWriter(
+                output, seq.fps, seq.width, seq.height, template=videos[0], **audio_and_tags
+            ) as vw:
+                for video in videos:
+                    vw.append(video)
+        except NvpError as e:
+            self._discard_after(e)
+            raise
         shutil.rmtree(self.root, ignore_errors=True)

@@ -7,19 +7,21 @@ atomically).
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import shutil
 import sys
 import time
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
 from nvp import __version__
-from nvp.artifact import atomic_path
+from nvp.artifact import DiskFullError, atomic_path
 from nvp.bundle import BundleBuilder, PersonBundle
-from nvp.errors import MediaError, NvpError
+from nvp.errors import MediaError, NoFaceError, NvpError
 from nvp.tracked import TrackedSequence
 
 log = logging.getLogger(__name__)
@@ -53,6 +55,40 @@ class FitConfig:
 
 
 GOOD_TARGET = "a good target shows one person facing the camera, talking for 1-3 minutes, with sound"
+
+
+@contextlib.contextmanager
+def _as_users_file(copy: Path, video: Path) -> Iterator[None]:
+    """Errors and log messages about nvp's copy of the target (``<out>.partial/target.mp4``) name the
+    user's ``video`` instead: the copy is an internal detail, the user knows their file."""
+    names = sorted({str(copy), str(copy.resolve())}, key=len, reverse=True)
+
+    def renamed(text: str) -> str:
+        for name in names:
+            text = text.replace(name, str(video))
+        return text
+
+    make = logging.getLogRecordFactory()
+
+    def factory(*args, **kwargs) -> logging.LogRecord:
+        record = make(*args, **kwargs)
+        try:
+            message = record.getMessage()
+        except Exception:  # a malformed record is logging's to report
+            return record
+        if any(name in message for name in names):
+            record.msg, record.args = renamed(message), ()
+        return record
+
+    logging.setLogRecordFactory(factory)
+    try:
+        yield
+    except NvpError as e:
+        if not isinstance(e, DiskFullError):  # that one is about writing the copy: it names the copy
+            e.args = tuple(renamed(a) if isinstance(a, str) else a for a in e.args)
+        raise
+    finally:
+        logging.setLogRecordFactory(make)
 
 
 def _stage(name: str) -> float:
@@ -108,6 +144,42 @@ def fit(
     if builder.restarted:
         log.warning("%s held an interrupted fit of another video; starting again", builder.work)
 
+    try:
+        with _as_users_file(builder.path("target"), video):
+            _stages(builder, video, cfg, progress, tracked)
+    except (NoFaceError, MediaError):
+        if not builder.done("track"):  # footage that cannot be tracked fails again: leave nothing behind
+            shutil.rmtree(builder.work, ignore_errors=True)
+        raise
+
+    from nvp.face_model import default_face_model
+    from nvp.person import PersonStyle
+
+    style = PersonStyle.load(builder.path("style"))
+    shutil.rmtree(builder.work / "cache", ignore_errors=True)
+    return builder.publish(
+        {
+            "nvp_version": __version__,
+            "face_model_sha256": default_face_model().sha256,
+            "audio2exp_sha256": style.audio2exp_sha256,
+            "feature_kind": style.feature_kind,
+            "preset": cfg.preset,
+            "target": {
+                "source": str(video),
+                "width": info.width,
+                "height": info.height,
+                "fps": info.fps,
+                "frames": info.num_frames,
+                "duration_s": info.duration_s,
+            },
+        }
+    )
+
+
+def _stages(
+    builder: BundleBuilder, video: Path, cfg: FitConfig, progress: bool, tracked: TrackedSequence | None
+) -> None:
+    """The stages of :func:`fit` that are not done yet, each marked done in ``builder`` when it is."""
     if not builder.done("target"):
         t0 = _stage("copy target")
         with atomic_path(builder.path("target")) as tmp:
@@ -178,7 +250,6 @@ def fit(
     shutil.rmtree(builder.work / UNREGISTERED, ignore_errors=True)
 
     from nvp.face_model import default_face_model
-    from nvp.person import PersonStyle
 
     if not builder.done("mouths"):
         from renderer.mouths import build_mouth_bank
@@ -190,26 +261,6 @@ def fit(
             bank.save(builder.path("renderer") / "mouths")
         n = 0 if bank is None else len(bank)
         builder.mark_done("mouths", entries=n, seconds=round(time.perf_counter() - t0, 2))
-
-    style = PersonStyle.load(builder.path("style"))
-    shutil.rmtree(builder.work / "cache", ignore_errors=True)
-    return builder.publish(
-        {
-            "nvp_version": __version__,
-            "face_model_sha256": default_face_model().sha256,
-            "audio2exp_sha256": style.audio2exp_sha256,
-            "feature_kind": style.feature_kind,
-            "preset": cfg.preset,
-            "target": {
-                "source": str(video),
-                "width": info.width,
-                "height": info.height,
-                "fps": info.fps,
-                "frames": info.num_frames,
-                "duration_s": info.duration_s,
-            },
-        }
-    )
 
 
 TRACK_S_PER_FRAME = 0.03
