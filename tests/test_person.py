@@ -236,7 +236,7 @@ def test_pauses_rest_as_the_person_rests_in_their_footage(face_model, rests):
         assert real_rests > 0.6 and 0.1 <= delay <= 0.3
         assert np.median(out_gap) <= closed_level(gap)  # the lips closed, as theirs are
     elif rests == "slightly_open":  # their own small opening (resting, by the metric), not closed lips
-        assert real_rests == 1 and delay == 0
+        assert real_rests == 1 and delay == 0.3  # at once, but never within a gap between words
         np.testing.assert_allclose(np.median(out_gap), np.median(gap[pauses]), rtol=0.05)
         assert np.median(out_gap) > closed_level(gap)
     else:
