@@ -1,8 +1,11 @@
 """One on-disk format for every saved object: a versioned JSON manifest beside an ``.npz`` of arrays.
 
-``save_artifact(path, kind, version, arrays, manifest)`` writes ``<stem>.npz`` and then ``<stem>.json``, each
-to a temporary file that is renamed into place, so a reader sees either the old pair or the new one; the
-manifest records the format name, its version, the arrays file, its size and its sha256.
+``save_artifact(path, kind, version, arrays, manifest)`` writes ``<stem>.npz`` and ``<stem>.json`` with one
+commit point: the arrays go to a new hidden file first, then the manifest naming that file replaces the old
+manifest (the commit), then the arrays take their plain name and the manifest follows — at every moment the
+manifest names arrays of its own size and sha256, so a reader (or a run killed anywhere) sees either the
+old pair or the new one. The manifest records the format name, its version, the arrays file, its size and
+its sha256.
 ``load_artifact(path, kind, versions)`` checks all of that and raises one :class:`FormatError` that says what
 was expected and what was found (a truncated, emptied or swapped arrays file included). Nothing is pickled.
 
@@ -10,8 +13,10 @@ Layout of a manifest::
 
     {"format": "nvp.<kind>", "version": 3, "arrays": "<stem>.npz", "bytes": 1234, "sha256": "…", …}
 
-Writing is crash-safe (temporary name + ``os.replace``) and a full disk is reported as
-"disk full while writing PATH" (:class:`DiskFullError`), never as a half-written file.
+Writing is crash-safe (temporary name, ``fsync`` of the file, ``os.replace``, ``fsync`` of the folder: a
+power cut leaves the old file or the new one, not an empty one) and a full disk is reported as
+"disk full while writing PATH" (:class:`DiskFullError`), never as a half-written file. Checkpoints of the
+trainers are written with :func:`atomic_path` too.
 """
 
 from __future__ import annotations
@@ -21,6 +26,8 @@ import errno
 import hashlib
 import json
 import os
+import secrets
+import shutil
 import tempfile
 import zipfile
 from collections.abc import Iterator
@@ -76,16 +83,37 @@ def is_disk_full(e: BaseException) -> bool:
     return "requested and" in str(e) and "written" in str(e)
 
 
+def fsync_path(path: Path) -> None:
+    """Flush a file's (or a folder's: its entries) data to the disk; folders of file systems that cannot
+    (some network mounts) are left as they are."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        if path.is_dir():
+            return
+        raise
+    try:
+        os.fsync(fd)
+    except OSError:
+        if not path.is_dir():
+            raise
+    finally:
+        os.close(fd)
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
-    """Yield a hidden temporary path beside ``path``; on success it is renamed to ``path``, on any error it
-    is removed (a full disk becomes :class:`DiskFullError`). ``path``'s folder is created if missing."""
+    """Yield a hidden temporary path beside ``path``; on success it is flushed to the disk and renamed to
+    ``path`` (the commit point), and the folder is flushed; on any error it is removed (a full disk
+    becomes :class:`DiskFullError`). ``path``'s folder is created if missing."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp{path.suffix}")
     try:
         yield tmp
+        fsync_path(tmp)
         os.replace(tmp, path)
+        fsync_path(path.parent)
     except BaseException as e:
         tmp.unlink(missing_ok=True)
         if is_disk_full(e):
@@ -149,18 +177,61 @@ def save_artifact(
     for name, a in arrays.items():
         if np.asarray(a).dtype == object:
             raise ValueError(f"array {name!r} has dtype object; artifacts hold numeric arrays only")
-    with atomic_path(npz) as tmp:
+    staged = js.with_name(f".{npz.stem}.{os.getpid()}-{secrets.token_hex(4)}.npz")
+    with atomic_path(staged) as tmp:
         with open(tmp, "wb") as f:
             (np.savez_compressed if compress else np.savez)(f, **arrays)
-    m = {
-        "format": f"nvp.{kind}",
-        "version": int(version),
-        "arrays": npz.name,
-        "bytes": npz.stat().st_size,
-        "sha256": file_sha256(npz),
-        **(manifest or {}),
-    }
-    return write_json(js, m)
+    try:
+        m = {
+            "format": f"nvp.{kind}",
+            "version": int(version),
+            "arrays": staged.name,
+            "bytes": staged.stat().st_size,
+            "sha256": file_sha256(staged),
+            **(manifest or {}),
+        }
+        write_json(js, m)  # the commit point: from here on readers get the new arrays
+    except BaseException:
+        if _named_arrays(js) != staged.name:  # (an error after the rename leaves the new pair whole)
+            staged.unlink(missing_ok=True)
+        raise
+    # the plain name: a link to the same data replaces the old arrays, then the manifest names it
+    with atomic_path(npz) as tmp:
+        try:
+            os.link(staged, tmp)
+        except OSError:  # a file system without hard links
+            shutil.copyfile(staged, tmp)
+    write_json(js, {**m, "arrays": npz.name})
+    for old in js.parent.glob(f".{npz.stem}.*.npz"):  # this save's, and those of saves killed before
+        if old.name != npz.name and _staged_by_gone_or_me(old):
+            old.unlink(missing_ok=True)
+    return js
+
+
+def _named_arrays(js: Path) -> str | None:
+    """The arrays file the manifest ``js`` names (None when it cannot be read)."""
+    try:
+        return json.loads(js.read_text()).get("arrays")
+    except (OSError, ValueError, AttributeError):
+        return None
+
+
+def _staged_by_gone_or_me(path: Path) -> bool:
+    """Whether staged arrays ``.<stem>.<pid>-<hex>.npz`` were written by this process or by one that is
+    gone (another process saving the same artifact right now keeps its own)."""
+    try:
+        pid = int(path.name.rsplit(".", 2)[-2].split("-", 1)[0])
+    except (ValueError, IndexError):
+        return False
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except OSError:
+        return False
+    return False
 
 
 def read_manifest(path: str | os.PathLike[str], kind: str, versions: tuple[int, ...] | int) -> dict:

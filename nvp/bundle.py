@@ -12,9 +12,9 @@ A bundle is built in ``<out>.partial/`` (its ``progress.json`` records the setti
 video and the finished stages, so an interrupted ``nvp fit`` resumes, and restarts when the input changed),
 then published by an atomic swap: ``bundle.json`` is written into the partial folder, an older bundle at
 ``<out>`` is moved aside to ``<out>.replaced``, the partial folder is renamed to ``<out>`` and the old one
-removed. A run killed anywhere in between leaves a state that the next :class:`BundleBuilder` (or
-:func:`recover`) completes. nvp never deletes or moves a folder that it did not make: ``<out>`` must be
-missing, empty or a person bundle.
+removed. A run killed anywhere in between leaves a state that the next ``nvp fit`` (:func:`recover`)
+completes; loading a bundle only reads. nvp never deletes or moves a folder that it did not make:
+``<out>`` must be missing, empty or a person bundle.
 """
 
 from __future__ import annotations
@@ -70,14 +70,21 @@ class PersonBundle:
     def load(cls, root: str | Path, verify: bool = True) -> PersonBundle:
         """Open a bundle, checking its format, version, face-model hash and every member: present, and
         (``verify``, :meth:`check`) every file the manifest lists at the size and sha256 it records — a
-        truncated, emptied or altered file is reported here, naming it, not as a crash later."""
+        truncated, emptied or altered file is reported here, naming it, not as a crash later. Reading never
+        changes the disk: an interrupted publish is finished by the next ``nvp fit`` (:func:`recover`)."""
         from nvp.face_model import default_face_model
 
         root = Path(root)
-        recover(root)
         js = root / MANIFEST
-        if not js.exists():
-            hint = " (an interrupted nvp fit? run it again to resume)" if partial_dir(root).exists() else ""
+        if not js.exists():  # read only: the next nvp fit finishes an interrupted publish (recover)
+            if is_bundle(partial_dir(root)) or is_bundle(replaced_dir(root)):
+                hint = (
+                    " (an nvp fit was interrupted while publishing it: run the same nvp fit again to finish)"
+                )
+            elif partial_dir(root).exists():
+                hint = " (an interrupted nvp fit? run it again to resume)"
+            else:
+                hint = ""
             raise FormatError(f"{root} is not a person bundle: {MANIFEST} missing{hint}")
         m = _read_bundle_manifest(js)
         if m.get("version") != FORMAT_VERSION:
@@ -259,21 +266,28 @@ def check_output_folder(root: Path, inputs: tuple[Path, ...] = ()) -> None:
 class BundleBuilder:
     """Builds a bundle in ``<root>.partial`` with resumable stages, then publishes it atomically.
 
-    ``config``: the settings a resume must share; ``input_sha256``: the input video's hash — a partial
-    bundle made from another input is discarded and the fit starts again (``restarted`` is then True).
+    ``config``: the settings a resume must share; ``input_sha256``: the input video's hash; ``version``: the
+    nvp that fits (:func:`nvp.provenance.code_version`) — a partial bundle made from another input or by
+    another nvp is discarded and the fit starts again (``restarted`` then says why: "of another video",
+    "made by nvp 0.1.0+g…"; empty otherwise).
     """
 
-    def __init__(self, root: str | Path, config: dict, input_sha256: str | None = None) -> None:
+    def __init__(
+        self, root: str | Path, config: dict, input_sha256: str | None = None, version: str | None = None
+    ) -> None:
         self.root = Path(root)
         check_output_folder(self.root)
         recover(self.root)
         self.work = partial_dir(self.root)
         self._progress_path = self.work / PROGRESS
         self.progress = self._read_progress()
-        self.restarted = False
+        self.restarted = ""
         if input_sha256 is not None and self.progress.get("input_sha256", input_sha256) != input_sha256:
             shutil.rmtree(self.work)  # an nvp-made partial bundle of another video: start again
-            self.progress, self.restarted = {}, True
+            self.progress, self.restarted = {}, "of another video"
+        elif version is not None and self.progress and self.progress.get("nvp") != version:
+            shutil.rmtree(self.work)  # work another nvp left (its stages may differ): start again
+            self.progress, self.restarted = {}, f"made by nvp {self.progress.get('nvp', 'before 0.1.0+g')}"
         if self.progress.get("config", config) != config:
             changed = sorted(k for k in config if self.progress["config"].get(k) != config[k])
             raise FormatError(
@@ -284,6 +298,8 @@ class BundleBuilder:
         self.progress["config"] = config
         if input_sha256 is not None:
             self.progress["input_sha256"] = input_sha256
+        if version is not None:
+            self.progress["nvp"] = version
         self._save()
 
     def _read_progress(self) -> dict:

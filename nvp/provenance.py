@@ -54,3 +54,33 @@ def verify(path: str | os.PathLike[str]) -> ProvenanceReport:
         raise MediaError(f"cannot read '{p}': {e}") from e
     tags = {k: v for k, v in meta.items() if k.startswith("nvp_") or (k == "comment" and "nvp" in v)}
     return ProvenanceReport(str(p), meta.get(KEY) == "1", tags)
+
+
+def code_version() -> str:
+    """nvp's version as resume keys need it: the release (``nvp.__version__``, bumped per release) plus,
+    when nvp runs from a git checkout, the commit (``0.1.0+g1a2b3c4d5e6f``), so that the next nvp never
+    resumes work an older one left (a changed working tree is not detected). Read from ``.git`` directly
+    (no git program needed); the release alone when that fails."""
+    from pathlib import Path
+
+    git = Path(__file__).resolve().parent.parent / ".git"
+    try:
+        if git.is_file():  # a worktree: "gitdir: <path>"
+            git = (git.parent / git.read_text().split(":", 1)[1].strip()).resolve()
+        head = (git / "HEAD").read_text().strip()
+        commit = head
+        if head.startswith("ref:"):
+            ref = head.split(":", 1)[1].strip()
+            loose = git / ref
+            if not loose.is_file() and (git / "commondir").is_file():  # worktrees keep refs in the main .git
+                loose = (git / (git / "commondir").read_text().strip()).resolve() / ref
+            if loose.is_file():
+                commit = loose.read_text().strip()
+            else:
+                packed = (loose.parents[len(Path(ref).parts) - 1] / "packed-refs").read_text().splitlines()
+                commit = next(line.split()[0] for line in packed if line.endswith(" " + ref))
+    except (OSError, StopIteration, IndexError, ValueError):
+        return __version__
+    if len(commit) < 12 or any(c not in "0123456789abcdef" for c in commit):
+        return __version__
+    return f"{__version__}+g{commit[:12]}"

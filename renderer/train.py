@@ -10,7 +10,6 @@ from __future__ import annotations
 import copy
 import json
 import logging
-import os
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
@@ -21,6 +20,7 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
+from nvp.artifact import atomic_path
 from nvp.errors import FormatError
 from nvp.threads import ThreadGovernor
 from renderer.adversarial import critic_loss, generator_loss
@@ -81,7 +81,10 @@ class RendererTrainConfig:
     training crop takes them from another training frame this many seconds away (at 25 fps), like a dub,
     whose footage frame shows another mouth."""
     checkpoint_every: int = 250
-    """Steps between checkpoints."""
+    """Steps between checkpoints (which also log the mean loss)."""
+    checkpoint_seconds: float = 60.0
+    """Training seconds after which a checkpoint is written between those of ``checkpoint_every``: a run
+    killed at any point loses at most this much training (250 steps take 2 minutes and more on a CPU)."""
     preview_every: int = 500
     """Steps between preview PNGs (ground truth | interior | final)."""
     seed: int = 0
@@ -289,20 +292,23 @@ def train_renderer(
     def save_checkpoint() -> None:
         if not main:
             return
-        tmp = out_dir / ".checkpoint.tmp"
-        torch.save(
-            {
-                "net": net.state_dict(),
-                "textures": textures.state_dict(),
-                "opt": opt.state_dict(),
-                "step": step,
-                "elapsed": elapsed,
-                "log": json.dumps(log_rows),
-                **({"critic": critic.state_dict(), "critic_opt": critic_opt.state_dict()} if critic else {}),
-            },
-            tmp,
-        )
-        os.replace(tmp, ckpt)
+        with atomic_path(ckpt) as tmp:  # flushed and renamed: a kill or power cut keeps the last whole one
+            torch.save(
+                {
+                    "net": net.state_dict(),
+                    "textures": textures.state_dict(),
+                    "opt": opt.state_dict(),
+                    "step": step,
+                    "elapsed": elapsed,
+                    "log": json.dumps(log_rows),
+                    **(
+                        {"critic": critic.state_dict(), "critic_opt": critic_opt.state_dict()}
+                        if critic
+                        else {}
+                    ),
+                },
+                tmp,
+            )
 
     critic = critic_opt = None
     if cfg.adversarial_weight > 0:
@@ -329,6 +335,7 @@ def train_renderer(
         disable=not (progress and main),
     )
     running: list[float] = []
+    saved_at = elapsed  # training seconds at the last checkpoint
     t_last = time.perf_counter()
     governor = ThreadGovernor() if str(device) == "cpu" else None  # threads follow the free cores
     while step < steps and (cfg.budget_s is None or elapsed < cfg.budget_s):
@@ -386,6 +393,10 @@ def train_renderer(
             log_rows.append({"step": step, "loss": float(np.mean(running)), "seconds": round(elapsed, 1)})
             running = []
             save_checkpoint()
+            saved_at = elapsed
+        elif elapsed - saved_at >= cfg.checkpoint_seconds:  # by time too: a kill loses a minute at most
+            save_checkpoint()
+            saved_at = elapsed
     bar.close()
     if sources is not None:
         sources.close()

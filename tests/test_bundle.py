@@ -5,6 +5,7 @@ from __future__ import annotations
 import errno
 import shutil
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -169,18 +170,31 @@ def test_info_and_dub_check_every_file_of_the_bundle_and_name_the_damaged_one(
     assert not (tmp_path / "x.mp4").exists()
 
 
-def test_every_interrupted_publish_is_finished_by_the_next_run(fitted, tmp_path):
+def tree(folder):
+    return sorted((p.relative_to(folder), p.is_file() and p.read_bytes()) for p in folder.rglob("*"))
+
+
+def test_every_interrupted_publish_is_finished_by_the_next_run(fitted, demo_clip, tmp_path):
+    from nvp.app.fit import FitConfig, fit
+
     # killed after bundle.json was written into the partial folder, before the swap (old bundle in place)
     root = copy_of(fitted, tmp_path, "p")
     new = copy_of(fitted, tmp_path, "p.partial")
     (new / "marker").write_text("new")
+    before = tree(tmp_path)
+    assert not (PersonBundle.load(root).root / "marker").exists()  # the old one, read as it is
+    assert tree(tmp_path) == before  # reading a bundle never changes the disk
     recover(root)
     assert (root / "marker").exists() and not partial_dir(root).exists() and not replaced_dir(root).exists()
     # killed after the old bundle was moved aside, before the new one was renamed
     root2 = tmp_path / "q"
     copy_of(fitted, tmp_path, "q.replaced")
     (copy_of(fitted, tmp_path, "q.partial") / "marker").write_text("new")
-    PersonBundle.load(root2)
+    before = tree(tmp_path)
+    with pytest.raises(FormatError, match="run the same nvp fit again to finish"):
+        PersonBundle.load(root2)
+    assert tree(tmp_path) == before
+    assert fit(demo_clip.path, root2, FitConfig(steps=2), progress=False).root == root2  # finishes, reuses
     assert (root2 / "marker").exists() and not replaced_dir(root2).exists()
     # killed while the old bundle was being removed: half of it left
     old = copy_of(fitted, tmp_path, "q.replaced")
@@ -483,3 +497,55 @@ def test_a_dub_that_fails_on_its_input_leaves_no_parts_an_interrupted_one_keeps_
     with pytest.raises(KeyboardInterrupt):
         dub(wav, fitted, out, progress=False)
     assert (parts_folder(out) / "key.json").exists() and not out.exists()  # the next run resumes
+
+
+def test_a_resumed_fit_says_so_and_one_left_by_another_nvp_starts_again(
+    demo_clip, tmp_path, monkeypatch, capsys, caplog
+):
+    import json
+
+    import tracking.track
+    from nvp.app import fit as app_fit
+    from nvp.provenance import code_version
+
+    class Training(Exception):
+        pass
+
+    def training(*a, **k):
+        raise Training
+
+    tracked = []
+    real_track = tracking.track.track_video
+    monkeypatch.setattr(
+        tracking.track, "track_video", lambda *a, **k: (tracked.append(1), real_track(*a, **k))[1]
+    )
+    monkeypatch.setattr(app_fit, "_train_renderer", training)
+    p, cfg = tmp_path / "p", app_fit.FitConfig(steps=1)
+    with pytest.raises(Training):
+        app_fit.fit(demo_clip.path, p, cfg, progress=False)
+    assert "resuming" not in capsys.readouterr().err
+    with pytest.raises(Training):
+        app_fit.fit(demo_clip.path, p, cfg, progress=False)
+    err = capsys.readouterr().err
+    assert "resuming the interrupted fit" in err and "target, track, style done" in err and len(tracked) == 1
+    progress = partial_dir(p) / "progress.json"
+    assert json.loads(progress.read_text())["nvp"] == code_version()
+    old = json.loads(progress.read_text())
+    progress.write_text(json.dumps({**old, "nvp": "0.0.9"}))  # left by another nvp
+    with pytest.raises(Training):
+        app_fit.fit(demo_clip.path, p, cfg, progress=False)
+    assert "made by nvp 0.0.9; starting again" in caplog.text and len(tracked) == 2
+
+
+def test_the_dub_resume_key_holds_nvps_commit_and_the_render_settings(fitted, tmp_path):
+    from nvp.app.dub import _resume_key
+    from nvp.provenance import code_version
+
+    wav = tmp_path / "s.wav"
+    sf.write(wav, speech(1.0), 22050)
+    b = PersonBundle.load(fitted)
+    key = _resume_key(wav, b, None, 25, device="cpu")
+    assert key["nvp"] == code_version() and key["device"] == "cpu" and "bf16" in key
+    if (Path(__file__).parents[1] / ".git").exists():
+        assert "+g" in key["nvp"]  # a checkout: its commit, not only the release
+    assert _resume_key(wav, b, None, 25, device="cuda") != key

@@ -1065,3 +1065,26 @@ def test_the_bank_s_teeth_follow_a_footage_frame_fading_to_white(footage, face_m
     # in the faded frame the grey entry is as much lighter as the frame is (0.65 of the way to white)
     lifted = shown["faded"][1][interior].mean() - shown["real"][1][interior].mean()
     assert lifted > 0.4 * (255 - shown["real"][1][interior].mean())
+
+
+def test_training_checkpoints_by_time_as_well_as_steps(footage, face_model, tmp_path, monkeypatch):
+    import renderer.train
+
+    path, seq = footage
+    cache = build_cache(path, seq, face_model, TINY, np.arange(6), progress=False)
+    cfg = RendererTrainConfig(steps=6, checkpoint_every=250, checkpoint_seconds=0.0, lr_final=1.0)
+    real, calls = renderer.train.renderer_loss, []
+
+    def killed_in_step_4(*a, **k):
+        calls.append(1)
+        if len(calls) == 4:
+            raise KeyboardInterrupt
+        return real(*a, **k)
+
+    monkeypatch.setattr(renderer.train, "renderer_loss", killed_in_step_4)
+    with pytest.raises(KeyboardInterrupt):
+        train_renderer(cache, cfg, tmp_path / "r", progress=False, preset=TINY)
+    state = torch.load(tmp_path / "r" / "checkpoint.pt", weights_only=True)
+    assert state["step"] == 3  # far from step 250: saved by time
+    monkeypatch.undo()
+    assert train_renderer(cache, cfg, tmp_path / "r", progress=False, preset=TINY)["steps"] == 6

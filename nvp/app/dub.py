@@ -180,9 +180,9 @@ def dub(
     )
     out = Path(output)
     out.parent.mkdir(parents=True, exist_ok=True)
-    parts = DubParts(out, _resume_key(audio_path, bundle, style, n_out, transcript))
+    parts = DubParts(out, _resume_key(audio_path, bundle, style, n_out, transcript, device=device))
     first = parts.finished * PART_FRAMES
-    if parts.finished and progress:
+    if parts.finished:  # every resumed run says so
         print(f"nvp dub: resuming {out.name} at frame {first} of {n_out}", file=sys.stderr)
 
     def spoken(j: int, k: int, tracked: np.ndarray) -> np.ndarray:  # j: from the first frame rendered now
@@ -215,12 +215,15 @@ def _resume_key(
     style: str | Path | None,
     frames: int,
     transcript: tuple[str, str] | None = None,
+    device: str = "cpu",
 ) -> dict:
-    """What a resumed dub must share with the interrupted one: nvp's version, the audio's, the style's and
-    the transcript's content, the person bundle's manifest (its input, settings and stages) and the parts'
-    length."""
-    from nvp import __version__
+    """What a resumed dub must share with the interrupted one: nvp's version and commit
+    (:func:`nvp.provenance.code_version`), the device and precision it renders with, the audio's, the
+    style's and the transcript's content, the person bundle's manifest (its input, settings and stages)
+    and the parts' length."""
     from nvp.artifact import file_sha256
+    from nvp.provenance import code_version
+    from renderer.networks import fast_bf16
 
     def manifest_sha(b: PersonBundle) -> str:
         return hashlib.sha256(json.dumps(b.manifest, sort_keys=True).encode()).hexdigest()
@@ -232,7 +235,9 @@ def _resume_key(
     else:
         style_sha = file_sha256(Path(style))
     return {
-        "nvp": __version__,
+        "nvp": code_version(),
+        "device": device,
+        "bf16": fast_bf16(device),
         "audio_sha256": file_sha256(Path(audio_path)),
         "person_sha256": manifest_sha(bundle),
         "style_sha256": style_sha,

@@ -109,8 +109,9 @@ def fit(
 
     ``tracked``: the video's tracking when the caller already has it (skips the tracking stage);
     ``force``: replace a finished bundle of another video at ``out`` (refused otherwise)."""
-    from nvp.bundle import check_output_folder, check_replacing, finished_bundle, input_hash
+    from nvp.bundle import check_output_folder, check_replacing, finished_bundle, input_hash, recover
     from nvp.media import probe_video
+    from nvp.provenance import code_version
 
     video, out = Path(video), Path(out)
     check_output_folder(out, inputs=(video,))
@@ -127,14 +128,19 @@ def fit(
         for k, v in asdict(cfg).items()
         if k not in ("device", "vgg_weights", "min_seconds", "warn_seconds")
     }
+    if cfg.vgg_weights is not None:  # the perceptual loss's weights shape the renderer: their content counts
+        if not Path(cfg.vgg_weights).is_file():
+            raise NvpError(f"the VGG-16 weights {cfg.vgg_weights} do not exist (--vgg-weights)")
+        config["perceptual"] = input_hash(Path(cfg.vgg_weights))
     sha = input_hash(video)
+    recover(out)  # finish a publish that was interrupted
     done = finished_bundle(out, config, sha)
     if done is not None:
         log.warning("%s is already fitted from %s with these settings; reusing it", out, video.name)
         return done
     if not force:
         check_replacing(out, sha)
-    builder = BundleBuilder(out, config, sha)
+    builder = BundleBuilder(out, config, sha, version=code_version())
     if progress:
         total, parts = expected_minutes(cfg, info.num_frames)
         print(
@@ -142,7 +148,12 @@ def fit(
             file=sys.stderr,
         )
     if builder.restarted:
-        log.warning("%s held an interrupted fit of another video; starting again", builder.work)
+        log.warning("%s held an interrupted fit %s; starting again", builder.work, builder.restarted)
+    if builder.progress.get("stages"):  # every resumed run says so
+        training = not builder.done("renderer") and (builder.path("renderer") / "checkpoint.pt").exists()
+        more = "; renderer training goes on from its last checkpoint" if training else ""
+        done = ", ".join(builder.progress["stages"])
+        print(f"nvp fit: resuming the interrupted fit in {builder.work} ({done} done{more})", file=sys.stderr)
 
     try:
         with _as_users_file(builder.path("target"), video):

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -22,6 +21,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from nvp.artifact import atomic_path
 from nvp.audio2exp import (
     Audio2ExpConfig,
     Audio2ExpressionNet,
@@ -384,20 +384,19 @@ def train(
                         **(provenance or {}),
                     },
                 )
-            tmp = out_dir / ".checkpoint.tmp"
-            torch.save(
-                {
-                    "net": net.state_dict(),
-                    "maps": maps.detach(),
-                    "bias": bias.detach(),
-                    "opt": opt.state_dict(),
-                    "step": step,
-                    "best": best,
-                    "torch_rng": torch.get_rng_state(),
-                },
-                tmp,
-            )
-            os.replace(tmp, ckpt)
+            with atomic_path(ckpt) as tmp:  # flushed and renamed: a kill keeps the last whole checkpoint
+                torch.save(
+                    {
+                        "net": net.state_dict(),
+                        "maps": maps.detach(),
+                        "bias": bias.detach(),
+                        "opt": opt.state_dict(),
+                        "step": step,
+                        "best": best,
+                        "torch_rng": torch.get_rng_state(),
+                    },
+                    tmp,
+                )
             (out_dir / "log.json").write_text(json.dumps(log_rows, indent=2) + "\n")
             group.barrier()
     bar.close()
