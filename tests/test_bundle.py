@@ -549,3 +549,11 @@ def test_the_dub_resume_key_holds_nvps_commit_and_the_render_settings(fitted, tm
     if (Path(__file__).parents[1] / ".git").exists():
         assert "+g" in key["nvp"]  # a checkout: its commit, not only the release
     assert _resume_key(wav, b, None, 25, device="cuda") != key
+
+
+def test_a_fit_of_half_a_minute_never_announces_about_0_min():
+    from nvp.app.fit import FitConfig, about_minutes, expected_minutes
+
+    assert about_minutes(0.5) == "about 1 min" and about_minutes(2.5) == "about 3 min"
+    assert about_minutes(0.49) == "under a minute" and about_minutes(12.2) == "about 12 min"
+    assert "about 0 min" not in expected_minutes(FitConfig(steps=200), 125)[1]  # 200 steps of 0.15 s

@@ -306,8 +306,9 @@ def renderer_init(name: str) -> str | None:
 
 
 def about_minutes(minutes: float) -> str:
-    """``minutes`` as a fit announces them: "about 12 min", "under a minute"."""
-    return f"about {minutes:.0f} min" if minutes >= 0.5 else "under a minute"
+    """``minutes`` as a fit announces them: "about 12 min", "under a minute" (half a minute rounds up:
+    Python's rounding to even made 0.5 "about 0 min")."""
+    return f"about {int(minutes + 0.5)} min" if minutes >= 0.5 else "under a minute"
 
 
 def expected_minutes(cfg: FitConfig, frames: int) -> tuple[float, str]:
