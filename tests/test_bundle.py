@@ -472,7 +472,7 @@ def test_a_faceless_fit_leaves_nothing_and_names_the_users_file(tmp_path, caplog
 
 
 def test_a_dub_that_fails_on_its_input_leaves_no_parts_an_interrupted_one_keeps_them(
-    fitted, tmp_path, monkeypatch
+    fitted, tmp_path, monkeypatch, capsys
 ):
     from nvp.app.dub import dub, parts_folder
     from nvp.errors import MediaError
@@ -497,6 +497,11 @@ def test_a_dub_that_fails_on_its_input_leaves_no_parts_an_interrupted_one_keeps_
     with pytest.raises(KeyboardInterrupt):
         dub(wav, fitted, out, progress=False)
     assert (parts_folder(out) / "key.json").exists() and not out.exists()  # the next run resumes
+    monkeypatch.undo()
+    capsys.readouterr()
+    dub(wav, fitted, out, progress=False)
+    assert "(all 25 frames rendered, joining)" in capsys.readouterr().err  # not "at frame 250 of 25"
+    assert out.exists() and not parts_folder(out).exists()
 
 
 def test_a_resumed_fit_says_so_and_one_left_by_another_nvp_starts_again(

@@ -183,7 +183,8 @@ def dub(
     parts = DubParts(out, _resume_key(audio_path, bundle, style, n_out, transcript, device=device))
     first = parts.finished * PART_FRAMES
     if parts.finished:  # every resumed run says so
-        print(f"nvp dub: resuming {out.name} at frame {first} of {n_out}", file=sys.stderr)
+        where = f"at frame {first} of {n_out}" if first < n_out else f"all {n_out} frames rendered, joining"
+        print(f"nvp dub: resuming {out.name} ({where})", file=sys.stderr)
 
     def spoken(j: int, k: int, tracked: np.ndarray) -> np.ndarray:  # j: from the first frame rendered now
         return dubbed_vertices(model, seq, k, expression[first + j], weights, tracked)
