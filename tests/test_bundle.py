@@ -562,3 +562,80 @@ def test_a_fit_of_half_a_minute_never_announces_about_0_min():
     assert about_minutes(0.5) == "about 1 min" and about_minutes(2.5) == "about 3 min"
     assert about_minutes(0.49) == "under a minute" and about_minutes(12.2) == "about 12 min"
     assert "about 0 min" not in expected_minutes(FitConfig(steps=200), 125)[1]  # 200 steps of 0.15 s
+
+
+def test_a_fit_killed_during_tracking_goes_on_from_its_last_saved_frame(
+    demo_clip, tmp_path, monkeypatch, capsys
+):
+    """Tracking saves its landmarks segment by segment; a rerun detects only the frames after the last
+    saved one (and the few before it that its detector warms up on) and tracks exactly as an uninterrupted
+    run."""
+    import tracking.detect
+    from nvp.app import fit as app_fit
+    from nvp.media import probe_video
+    from nvp.tracked import TrackedSequence
+    from tracking.track import saved_frames, track_video
+
+    class Killed(BaseException):
+        pass
+
+    class Training(Exception):
+        pass
+
+    def training(*a, **k):
+        raise Training
+
+    n = probe_video(demo_clip.path).num_frames
+    monkeypatch.setattr(tracking.detect, "SEGMENT_FRAMES", 10)
+    monkeypatch.setattr(tracking.detect, "count_faces", lambda *a, **k: 1)
+    monkeypatch.setattr(app_fit, "_train_renderer", training)
+    real = tracking.detect.LandmarkDetector.detect
+    seen, kill_at = [], [25]
+
+    def detect(self, rgb, time_s):
+        frame = int(round(time_s * 25))
+        if kill_at and frame >= kill_at[0]:
+            raise Killed
+        seen.append(frame)
+        return real(self, rgb, time_s)
+
+    monkeypatch.setattr(tracking.detect.LandmarkDetector, "detect", detect)
+    p, cfg = tmp_path / "p", app_fit.FitConfig(steps=1)
+    with pytest.raises(Killed):
+        app_fit.fit(demo_clip.path, p, cfg, progress=False)
+    work = partial_dir(p)
+    assert saved_frames(work / "target.mp4", work / app_fit.TRACKING_SAVES) == (20, n)
+    kill_at.clear()
+    seen.clear()
+    capsys.readouterr()
+    with pytest.raises(Training):
+        app_fit.fit(demo_clip.path, p, cfg, progress=False)
+    err = capsys.readouterr().err
+    assert f"tracking goes on from frame 20 of {n}" in err and err.count("resuming") == 1, err
+    assert sorted(seen) == list(range(20 - tracking.detect.WARMUP_FRAMES, n))  # only the rest (+ warm-up)
+    assert not (work / app_fit.TRACKING_SAVES).exists()  # removed once tracked
+    resumed = TrackedSequence.load(work / "tracked")
+    whole = track_video(demo_clip.path, progress=False)[0]
+    for name in ("landmarks", "expression", "rotation", "translation", "identity", "valid"):
+        np.testing.assert_array_equal(getattr(resumed, name), getattr(whole, name), err_msg=name)
+
+
+def test_saved_tracking_of_another_video_or_nvp_is_not_resumed(demo_clip, tmp_path, monkeypatch):
+    import json
+
+    import tracking.detect
+    from tracking.track import saved_frames, track_video
+
+    monkeypatch.setattr(tracking.detect, "SEGMENT_FRAMES", 10)
+    video, saves = tmp_path / "talk.mp4", tmp_path / "saves"
+    shutil.copyfile(demo_clip.path, video)
+    track_video(video, progress=False, saves=saves)
+    done, n = saved_frames(video, saves)
+    assert done == n > 0
+    first = saves / "segment-00000.json"
+    m = json.loads(first.read_text())
+    first.write_text(json.dumps({**m, "key": {**m["key"], "nvp": "0.0.9"}}))  # left by another nvp
+    assert saved_frames(video, saves)[0] == 0
+    with open(video, "ab") as f:
+        f.write(b"\0")  # another video by content
+    assert saved_frames(video, saves)[0] == 0

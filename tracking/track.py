@@ -176,13 +176,31 @@ def track_video(
     model: FaceModel | None = None,
     progress: bool = True,
     max_frames: int | None = None,
+    saves: Path | None = None,
 ) -> tuple[TrackedSequence, Detections]:
-    """Detect and fit a whole video. Returns the tracked sequence and the raw detections."""
+    """Detect and fit a whole video. Returns the tracked sequence and the raw detections.
+
+    ``saves``: a folder where the detection saves its progress as it goes and finds an interrupted run's
+    (:func:`tracking.detect.detect_video`; :func:`saved_frames` says how far it got)."""
     t0 = time.perf_counter()
     model = model or default_face_model()
-    det = detect_video(path, progress=progress, max_frames=max_frames, lips=lip_landmarks(model))
+    det = detect_video(path, progress=progress, max_frames=max_frames, lips=lip_landmarks(model), saves=saves)
     t_det = time.perf_counter() - t0
     seq = fit_detections(det, model, cfg)
     total = time.perf_counter() - t0
     info = dict(seq.info, source=str(path), detect_seconds=round(t_det, 2), total_seconds=round(total, 2))
     return dataclasses.replace(seq, info=info), det
+
+
+def saved_frames(path: str | Path, saves: Path, model: FaceModel | None = None) -> tuple[int, int]:
+    """How far an interrupted :func:`track_video` of ``path`` with ``saves`` got: the frames whose landmarks
+    are saved (for this video, these settings and this nvp) and the video's frames."""
+    from nvp.media import probe_video
+    from tracking.detect import detections_key, saved_segments
+
+    n = probe_video(path).num_frames
+    if not Path(saves).is_dir():
+        return 0, n
+    lips = lip_landmarks(model or default_face_model())
+    done = saved_segments(Path(saves), detections_key(path, 1, None, lips), n)
+    return sum(len(d["found"]) for d in done), n

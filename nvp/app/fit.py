@@ -126,7 +126,7 @@ def fit(
     config = {
         k: v
         for k, v in asdict(cfg).items()
-        if k not in ("device", "vgg_weights", "min_seconds", "warn_seconds")
+        if k not in ("vgg_weights", "min_seconds", "warn_seconds")  # the device stays: it shapes the renderer
     }
     if cfg.vgg_weights is not None:  # the perceptual loss's weights shape the renderer: their content counts
         if not Path(cfg.vgg_weights).is_file():
@@ -152,6 +152,8 @@ def fit(
     if builder.progress.get("stages"):  # every resumed run says so
         training = not builder.done("renderer") and (builder.path("renderer") / "checkpoint.pt").exists()
         more = "; renderer training goes on from its last checkpoint" if training else ""
+        if not builder.done("track") and tracked is None:
+            more = _tracking_resumes(builder)
         done = ", ".join(builder.progress["stages"])
         print(f"nvp fit: resuming the interrupted fit in {builder.work} ({done} done{more})", file=sys.stderr)
 
@@ -210,7 +212,11 @@ def _stages(
                 faces,
                 GOOD_TARGET,
             )
-        seq = tracked if tracked is not None else track_video(builder.path("target"), progress=progress)[0]
+        saves = builder.work / TRACKING_SAVES
+        if tracked is None:
+            seq = track_video(builder.path("target"), progress=progress, saves=saves)[0]
+        else:
+            seq = tracked
         seq.save(builder.path("tracked"))
         builder.mark_done(
             "track",
@@ -219,6 +225,7 @@ def _stages(
             seconds=round(time.perf_counter() - t0, 2),
         )
 
+    shutil.rmtree(builder.work / TRACKING_SAVES, ignore_errors=True)
     _warn_about_faces(TrackedSequence.load(builder.path("tracked")), video, cfg.preset)
 
     if not builder.done("style"):
@@ -272,6 +279,23 @@ def _stages(
             bank.save(builder.path("renderer") / "mouths")
         n = 0 if bank is None else len(bank)
         builder.mark_done("mouths", entries=n, seconds=round(time.perf_counter() - t0, 2))
+
+
+TRACKING_SAVES = "tracking"
+"""The folder of the work folder where tracking saves its landmarks as it goes (removed once tracked)."""
+
+
+def _tracking_resumes(builder: BundleBuilder) -> str:
+    """What the resume line says about tracking: how far an interrupted tracking got (its saved frames)."""
+    from tracking.track import saved_frames
+
+    saves = builder.work / TRACKING_SAVES
+    if not saves.is_dir():
+        return ""
+    done, total = saved_frames(builder.path("target"), saves)
+    if done >= total:
+        return f"; tracking's landmarks are all saved ({total} frames), the face model is fitted again"
+    return f"; tracking goes on from frame {done} of {total}" if done else ""
 
 
 TRACK_S_PER_FRAME = 0.03
