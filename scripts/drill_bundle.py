@@ -494,12 +494,14 @@ def kill_when(d: Drill, row: Row, args: tuple, ready: Callable[[], bool], limit:
 
 
 def fit_kill_cases() -> dict[str, Callable[[Drill, Row], None]]:
-    """``kill -9`` a fit at five points; the same command then finishes, says it resumes, keeps the work."""
+    """``kill -9`` a fit at five points (tracking twice: before and after it saved landmarks); the same
+    command then finishes, says it resumes, keeps the work."""
 
-    def case(point: str, ready_of: Callable[[Path], bool], steps: int | None = None):
+    def case(point: str, ready_of: Callable[[Path], bool], steps: int | None = None, video=None):
         def run(d: Drill, row: Row) -> None:
             out = d.folder(row.case) / "p"
-            args = ("fit", VIDEO, "-o", out, "--steps", steps or d.steps)
+            target = VIDEO if video is None else video(d.folder(row.case))
+            args = ("fit", target, "-o", out, "--steps", steps or d.steps)
             if not kill_when(d, row, args, lambda: ready_of(out)):
                 return
             kept = stages_of(out)
@@ -517,6 +519,8 @@ def fit_kill_cases() -> dict[str, Callable[[Drill, Row], None]]:
                 row.fail("the rerun did not say it resumed")
             if point == "renderer" and "from its last checkpoint" not in proc.stderr:
                 row.fail("renderer training did not go on from its checkpoint")
+            if point == "saved tracking" and "tracking goes on from frame 250 of" not in proc.stderr:
+                row.fail("tracking did not go on from its last saved frame")
             row.note = f"killed in {point}; kept {','.join(kept) or '-'}"
             info = d.nvp(row, "info", out)
             d.succeeded(row, info)
@@ -529,8 +533,19 @@ def fit_kill_cases() -> dict[str, Callable[[Drill, Row], None]]:
     def training(out: Path) -> bool:
         return (out.with_name(out.name + ".partial") / "renderer" / "checkpoint.pt").exists()
 
+    def tracking_saved(out: Path) -> bool:  # the first segment of landmarks (250 frames) is saved
+        return (out.with_name(out.name + ".partial") / "tracking" / "segment-00000.json").exists()
+
+    def three_times(folder: Path) -> Path:  # VIDEO forwards, backwards, forwards: 366 frames, 14.6 s
+        from nvp.media import iter_frames
+
+        frames = list(iter_frames(VIDEO))
+        speech = speech_of(VIDEO)
+        return clip(folder / "longer.mp4", frames + frames[::-1] + frames, 25, np.tile(speech, 3), 16000)
+
     return {
         "fit_kill_tracking": case("track", during("track", "target")),
+        "fit_kill_tracking_saved": case("saved tracking", tracking_saved, video=three_times),
         "fit_kill_style": case("style", during("style", "track")),
         "fit_kill_renderer": case("renderer", training, steps=400),
         "fit_kill_register": case("register", during("register", "renderer")),
