@@ -200,9 +200,8 @@ class PersonStyle:
         mouth, or with :attr:`pause_open` that mouth until :attr:`pause_close_after_s` into each run of
         unvoiced frames (``voice < 0.5``; causal, so a stream can use it) and the rest mouth after it,
         with a two-frame ramp between."""
-        rest = np.broadcast_to(self.rest_expression, (len(voice), len(self.rest_expression)))
         if self.pause_open is None:
-            return rest
+            return np.broadcast_to(self.rest_expression, (len(voice), len(self.rest_expression)))
         since = np.zeros(len(voice))  # frames since the current unvoiced run began (0 while voiced)
         run = 0
         for t, v in enumerate(np.asarray(voice) < 0.5):
@@ -470,9 +469,8 @@ def style_from_sample(
     * rest expression: the person's mouth in their pauses when ``voiced`` ``(T,)`` (see
       :func:`voiced_frames`) shows enough of them (:func:`pause_rest`; with ``pause_timing_min_frames``
       pause frames or more, also when in a pause their lips come to rest), else their most closed mouth.
-      Measured on the
-      validation people of ``scripts/data_split.json`` (``scripts/eval_lipsync.py``): pause frames at rest
-      0.85 → 0.06 (real 0.09), opening correlation 0.40 → 0.49;
+      Measured on the validation people of ``scripts/data_split.json`` (``scripts/eval_lipsync.py``): pause
+      frames at rest 0.85 → 0.06 (real 0.09), opening correlation 0.40 → 0.49;
     * closed expression: their closed lips while speaking (:func:`closed_mouth`), when the network has a
       closure head;
     * opening: with an ``opening`` model and the sample's ``opening_windows`` (of that model's features),
@@ -486,11 +484,11 @@ def style_from_sample(
     expression = sample.expression[ok]
     gap = model.inner_lip_gap(identity, expression)
     pmap = solve_person_map(audio_exp, expression, ridge)
-    pmap, gain = range_calibrated(pmap, audio_exp, lambda e: model.inner_lip_gap(identity, e), gap, max_gain)
+    gap_of = lambda e: model.inner_lip_gap(identity, e)  # noqa: E731
+    pmap, gain = range_calibrated(pmap, audio_exp, gap_of, gap, max_gain)
     rest, kind = rest_expression(expression, gap), "closed"
     pause_open, close_after = None, 0.0
     if voiced is not None:
-        gap_of = lambda e: model.inner_lip_gap(identity, e)  # noqa: E731
         fps = sample.tracked.fps
         in_pause = pause_rest(expression, gap, voiced[ok], fps, gap_of, pause_timing_min_frames)
         if in_pause is not None:
@@ -610,9 +608,13 @@ def apply_style(
         if w is not None:
             expr = expr + w[:, None] * (style.closed_expression - expr)
     if voice is not None:
-        if fps is None and style.pause_open is not None:
-            raise ValueError("this person's style rests the mouth over time in pauses: pass the frame rate")
-        rest = style.rest_track(np.asarray(voice), fps or 25.0)
+        rest = style.rest_expression
+        if style.pause_open is not None:
+            if fps is None:
+                raise ValueError(
+                    "this person's style rests the mouth over time in pauses: pass the frame rate"
+                )
+            rest = style.rest_track(np.asarray(voice), fps)
         expr = rest + np.asarray(voice)[:, None] * (expr - rest)
     return expr.astype(np.float32)
 
