@@ -16,7 +16,8 @@ Layout of a manifest::
 Writing is crash-safe (temporary name, ``fsync`` of the file, ``os.replace``, ``fsync`` of the folder: a
 power cut leaves the old file or the new one, not an empty one) and a full disk is reported as
 "disk full while writing PATH" (:class:`DiskFullError`), never as a half-written file. Checkpoints of the
-trainers are written with :func:`atomic_path` too.
+trainers are written with :func:`atomic_path` too, and read with :func:`load_checkpoint` (a damaged one is
+one error that names it).
 """
 
 from __future__ import annotations
@@ -279,3 +280,24 @@ def load_artifact(path: str | os.PathLike[str], kind: str, versions: tuple[int, 
     except LOAD_ERRORS as e:
         raise FormatError(f"cannot read {npz}: {e or type(e).__name__}") from e
     return Artifact(m, arrays, js)
+
+
+def load_checkpoint(path: str | os.PathLike[str], device: str = "cpu") -> dict:
+    """A trainer's checkpoint (``torch.load`` with ``weights_only``); one :class:`FormatError` naming it when
+    it cannot be read (cut short, emptied, junk: torch raises zip, pickle or EOF errors)."""
+    import torch
+
+    try:
+        state = torch.load(path, weights_only=True, map_location=device)
+    except Exception as e:  # noqa: BLE001 - whatever the damage, the answer is the same
+        why = str(e).splitlines()[0][:120] if str(e) else type(e).__name__
+        raise FormatError(
+            f"the training checkpoint {path} is damaged and cannot be read ({why}); delete it to start "
+            "training again"
+        ) from e
+    if not isinstance(state, dict):
+        raise FormatError(
+            f"the training checkpoint {path} holds a {type(state).__name__}, not a checkpoint; delete it to "
+            "start training again"
+        )
+    return state

@@ -20,7 +20,7 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
-from nvp.artifact import atomic_path
+from nvp.artifact import atomic_path, load_checkpoint
 from nvp.errors import FormatError
 from nvp.threads import ThreadGovernor
 from renderer.adversarial import critic_loss, generator_loss
@@ -232,9 +232,14 @@ def train_renderer(
     preset: Preset | None = None,
     names: Sequence[str] | None = None,
     group=None,
+    say_resume: bool = True,
 ) -> dict:
     """Train on one person's frames, or pre-train on many; resumable from ``out_dir/checkpoint.pt``.
     Writes ``renderer.{npz,json}``.
+
+    A resumed training says so in one warning line (where it goes on from; ``say_resume=False``: the
+    caller says it); a checkpoint that cannot be read (damaged from outside) is one :class:`FormatError`
+    naming it, to be deleted to start again.
 
     ``caches``: one ``FrameCache`` (a person), or several (one per video: pre-training a generic renderer;
     the networks are shared, each video has its own texture, every step draws its batch from one video
@@ -275,19 +280,22 @@ def train_renderer(
     step, elapsed, log_rows = 0, 0.0, []
     ckpt = out_dir / "checkpoint.pt"
     if ckpt.exists():
+        state = load_checkpoint(ckpt, device)
         try:
-            state = torch.load(ckpt, weights_only=True, map_location=device)
             net.load_state_dict(state["net"])
             if "textures" in state or len(caches) > 1:  # (older single-video checkpoints have none)
                 textures.load_state_dict(state["textures"])
             opt.load_state_dict(state["opt"])
-        except (RuntimeError, KeyError, ValueError) as e:
+            step, elapsed, log_rows = int(state["step"]), float(state["elapsed"]), json.loads(state["log"])
+        except (RuntimeError, KeyError, ValueError, TypeError, AttributeError) as e:
             raise FormatError(
                 f"{ckpt} was written by another nvp version, preset or set of videos and cannot be "
                 "resumed; delete it to train from scratch"
             ) from e
-        step, elapsed, log_rows = int(state["step"]), float(state["elapsed"]), json.loads(state["log"])
-        log.info("resuming renderer training at step %d", step)
+        if say_resume and main:
+            log.warning(
+                "resuming renderer training from %s at step %d (%.1f min trained)", ckpt, step, elapsed / 60
+            )
 
     def save_checkpoint() -> None:
         if not main:

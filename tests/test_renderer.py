@@ -1088,3 +1088,33 @@ def test_training_checkpoints_by_time_as_well_as_steps(footage, face_model, tmp_
     assert state["step"] == 3  # far from step 250: saved by time
     monkeypatch.undo()
     assert train_renderer(cache, cfg, tmp_path / "r", progress=False, preset=TINY)["steps"] == 6
+
+
+@pytest.mark.parametrize("damage", ["truncate", "empty", "junk"])
+def test_a_resumed_training_says_so_and_a_damaged_checkpoint_is_one_clear_error(
+    footage, face_model, tmp_path, caplog, damage
+):
+    import logging
+
+    from nvp.errors import FormatError
+
+    path, seq = footage
+    cache = build_cache(path, seq, face_model, TINY, np.arange(6), progress=False)
+    cfg = RendererTrainConfig(steps=2, checkpoint_every=1, lr_final=1.0)
+    train_renderer(cache, cfg, tmp_path / "r", progress=False, preset=TINY)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):  # visible without -v
+        train_renderer(cache, replace(cfg, steps=3), tmp_path / "r", progress=False, preset=TINY)
+    resumed = [r.getMessage() for r in caplog.records if "resuming" in r.getMessage()]
+    assert len(resumed) == 1 and "at step 2" in resumed[0] and "checkpoint.pt" in resumed[0], resumed
+    ckpt = tmp_path / "r" / "checkpoint.pt"
+    data = ckpt.read_bytes()
+    damaged = {
+        "truncate": data[: len(data) // 2],
+        "empty": b"",
+        "junk": bytes(range(256)) * (len(data) // 256),
+    }
+    ckpt.write_bytes(damaged[damage])
+    with pytest.raises(FormatError, match="damaged and cannot be read") as e:
+        train_renderer(cache, replace(cfg, steps=4), tmp_path / "r", progress=False, preset=TINY)
+    assert str(ckpt) in str(e.value) and "delete it to start training again" in str(e.value)

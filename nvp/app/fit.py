@@ -474,7 +474,9 @@ def _train_renderer(builder: BundleBuilder, cfg: FitConfig, progress: bool) -> d
         vgg_weights=cfg.vgg_weights,
         init=renderer_init(cfg.renderer_init),
     )
-    info = train_renderer(cache, tcfg, builder.path("renderer"), device=cfg.device, progress=progress)
+    info = train_renderer(  # the fit's resume line has said that training goes on
+        cache, tcfg, builder.path("renderer"), device=cfg.device, progress=progress, say_resume=False
+    )
     for name in ("renderer_frames.json", "renderer_frames.npz"):
         (builder.work / name).unlink(missing_ok=True)
     (builder.path("renderer") / "checkpoint.pt").unlink(missing_ok=True)

@@ -295,17 +295,27 @@ def train(
     step, best = 0, float("inf")
     ckpt = out_dir / "checkpoint.pt"
     if ckpt.exists():
-        state = torch.load(ckpt, weights_only=True)
-        net.load_state_dict(state["net"])
-        with torch.no_grad():
-            maps.copy_(state["maps"])
-            bias.copy_(state["bias"])
-        opt.load_state_dict(state["opt"])
-        if "torch_rng" in state:  # dropout draws from torch's global generator
-            torch.set_rng_state(state["torch_rng"])
-        step, best = int(state["step"]), float(state["best"])
+        from nvp.artifact import load_checkpoint
+        from nvp.errors import FormatError
+
+        state = load_checkpoint(ckpt)
+        try:
+            net.load_state_dict(state["net"])
+            with torch.no_grad():
+                maps.copy_(state["maps"])
+                bias.copy_(state["bias"])
+            opt.load_state_dict(state["opt"])
+            if "torch_rng" in state:  # dropout draws from torch's global generator
+                torch.set_rng_state(state["torch_rng"])
+            step, best = int(state["step"]), float(state["best"])
+        except (RuntimeError, KeyError, ValueError, TypeError, AttributeError) as e:
+            raise FormatError(
+                f"{ckpt} was written by another nvp version, network or set of videos and cannot be "
+                "resumed; delete it to train from scratch"
+            ) from e
         log_rows = json.loads((out_dir / "log.json").read_text()) if (out_dir / "log.json").exists() else []
-        log.info("resuming from step %d", step)
+        if group.main:
+            log.warning("resuming audio2exp training from %s at step %d of %d", ckpt, step, cfg.steps)
     forward = trainable
     if group.world > 1:
         from torch.nn.parallel import DistributedDataParallel
