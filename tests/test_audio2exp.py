@@ -255,3 +255,29 @@ def test_two_processes_under_torchrun_follow_the_one_process_run(tmp_path):
     assert one[-1] < one[0]
     val = [np.array([r["mouth_error_iod"] for r in logs[k]]) for k in runs]
     np.testing.assert_allclose(val[1], val[0], rtol=1e-4)
+
+
+def test_a_resumed_training_says_so_and_a_damaged_checkpoint_is_one_clear_error(
+    face_model, tmp_path, one_thread, caplog
+):
+    import logging
+
+    from nvp.errors import FormatError
+
+    train_set = [fake_sample(face_model, f"v{i}", i) for i in range(2)]
+    val_set = [fake_sample(face_model, "val", 9)]
+    cfg = Audio2ExpTrainConfig(steps=2, batch=4, val_every=2, net=CFG)
+    train(train_set, val_set, face_model, cfg, tmp_path / "a", progress=False)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):  # visible without -v
+        train(
+            train_set, val_set, face_model, dataclasses.replace(cfg, steps=4), tmp_path / "a", progress=False
+        )
+    said = [r.getMessage() for r in caplog.records if "resuming" in r.getMessage()]
+    assert len(said) == 1 and "at step 2 of 4" in said[0], said
+    ckpt = tmp_path / "a" / "checkpoint.pt"
+    ckpt.write_bytes(ckpt.read_bytes()[:1000])  # cut short
+    with pytest.raises(FormatError, match="damaged and cannot be read.*delete it to start training again"):
+        train(
+            train_set, val_set, face_model, dataclasses.replace(cfg, steps=6), tmp_path / "a", progress=False
+        )
