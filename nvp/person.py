@@ -195,6 +195,18 @@ class PersonStyle:
     pause_open: np.ndarray | None = None
     pause_close_after_s: float = 0.0
 
+    def sealed_lips(self) -> np.ndarray:
+        """``(K_exp,)`` the person's lips pressed together, as for p, b and m: their closed mouth moved along
+        their opening direction until the inner lips touch (opening 0, :class:`OpeningStyle`); the closed
+        mouth itself for a style without an opening calibration. The closed mouth is the mean of their
+        frames at or below their closed level, so its lips are a little apart (measured on one person:
+        tracked gap 0.14 cm, 7th percentile of their frames; sealed 0.03 cm)."""
+        closed = self.closed_expression
+        if self.opening is None:
+            return closed
+        apart = max(float(self.opening.opening_of(closed[None])[0]), 0.0)
+        return (closed - apart * self.opening.direction).astype(np.float32)
+
     def rest_track(self, voice: np.ndarray, fps: float) -> np.ndarray:
         """``(T, K_exp)`` the mouth each frame rests towards, for voice activity ``voice`` ``(T,)``: the rest
         mouth, or with :attr:`pause_open` that mouth until :attr:`pause_close_after_s` into each run of
@@ -603,10 +615,11 @@ def apply_style(
         w = None if style.opening is None else style.opening.closing(opening)
         if w is None and closure is not None:  # a style without a closing level: the closure head decides
             w = closure_weight(closure, ramp)
-        if text_closure is not None:
-            w = text_closure if w is None else np.maximum(w, text_closure)
         if w is not None:
             expr = expr + w[:, None] * (style.closed_expression - expr)
+        if text_closure is not None:  # the text's p, b and m: lips sealed, not only closed
+            sealed = style.sealed_lips()
+            expr = expr + np.asarray(text_closure, np.float32)[:, None] * (sealed - expr)
     if voice is not None:
         rest = style.rest_expression
         if style.pause_open is not None:

@@ -74,8 +74,9 @@ def main(argv: list[str] | None = None) -> int:
     fps = probe_video(footage).fps
     closed = closed_level(real_gap[np.isfinite(real_gap)])
     shut, total = bilabial_rate(real_gap, read_audio(footage, SR), fps, closed)
+    real = f"{shut / total:.2f}"
     rows = [
-        {"speech": "the footage itself", "p/b/m frames": total, "closed, audio only": f"{shut / total:.2f}"}
+        {"speech": "the footage", "p/b/m frames": total, "closed, audio only": real, "closed, with text": "—"}
     ]
     with tempfile.TemporaryDirectory() as tmp:
         for key in args.texts:
@@ -95,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
             rows.append(row)
             print(row, flush=True)
     (args.out / "results.json").write_text(json.dumps(rows, indent=2) + "\n")
-    md = markdown_table(rows)
+    md = markdown_table(rows, ["speech", "p/b/m frames", "closed, audio only", "closed, with text"])
     (args.out / "results.md").write_text(md + "\n")
     print(md)
     return 0

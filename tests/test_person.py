@@ -383,3 +383,24 @@ def test_style_transfer_moves_the_mouth_statistics_towards_the_other_person(face
     np.testing.assert_allclose(apply_style(moved, a, None, np.zeros(300))[0], own.rest_expression, atol=1e-6)
     with pytest.raises(NvpError, match="different"):
         transferred_style(own, PersonStyle(other.person_map, other.rest_expression, "mel", "1" * 64, {}))
+
+
+def test_sealed_lips_touch_and_text_closures_seal_them():
+    from nvp.person import OpeningStyle, apply_style
+
+    rng = np.random.default_rng(3)
+    gw = rng.normal(size=K).astype(np.float32)
+    direction = (gw / (gw @ gw)).astype(np.float32)  # direction @ gap_weights = 1
+    opening = OpeningStyle(gw, 0.05, direction, 1.0, 0.0, 0.0, "0")
+    closed = (0.02 * direction + rng.normal(0, 0.1, K)).astype(np.float32)
+    closed -= ((closed @ gw + 0.05 - 0.02) * direction).astype(np.float32)  # opening 0.02: a little apart
+    style = dataclasses.replace(_style(), closed_expression=closed, opening=opening)
+    assert opening.opening_of(closed[None])[0] == pytest.approx(0.02, abs=1e-5)
+    assert opening.opening_of(style.sealed_lips()[None])[0] == pytest.approx(0.0, abs=1e-5)
+    audio_exp = rng.normal(size=(3, 32)).astype(np.float32)
+    out = apply_style(
+        style, audio_exp, None, None, opening=np.zeros(3, np.float32), text_closure=np.array([0, 1, 0])
+    )
+    np.testing.assert_allclose(out[1], style.sealed_lips(), atol=1e-5)
+    free = apply_style(style, audio_exp, None, None, opening=np.zeros(3, np.float32))
+    np.testing.assert_allclose(out[[0, 2]], free[[0, 2]])
