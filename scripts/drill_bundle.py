@@ -494,38 +494,80 @@ def kill_when(d: Drill, row: Row, args: tuple, ready: Callable[[], bool], limit:
 
 
 def fit_kill_cases() -> dict[str, Callable[[Drill, Row], None]]:
-    """``kill -9`` a fit at five points (tracking twice: before and after it saved landmarks); the same
-    command then finishes, says it resumes, keeps the work."""
+    """``kill -9`` a fit at five points (tracking twice: before and after it saved landmarks), twice in a
+    row, and with its saved landmarks or its renderer checkpoint damaged after the kill; the same command
+    then finishes, says it resumes in one line, keeps the work (a damaged checkpoint: one error line that
+    names it first, then, deleted, the fit goes on without it)."""
 
-    def case(point: str, ready_of: Callable[[Path], bool], steps: int | None = None, video=None):
+    def case(
+        point: str,
+        ready_of: Callable[[Path], bool],
+        steps: int | None = None,
+        video=None,
+        again: Callable[[Path], bool] | None = None,
+        then: Callable[[Drill, Row, Path], bool] | None = None,
+    ):
+        """``again``: a second kill point of the rerun; ``then``: what happens to the work folder between the
+        last kill and the rerun (damage; False: stop there)."""
+
         def run(d: Drill, row: Row) -> None:
             out = d.folder(row.case) / "p"
             target = VIDEO if video is None else video(d.folder(row.case))
             args = ("fit", target, "-o", out, "--steps", steps or d.steps)
             if not kill_when(d, row, args, lambda: ready_of(out)):
                 return
+            if again is not None and not kill_when(d, row, args, lambda: again(out)):
+                return
             kept = stages_of(out)
+            if then is not None and not then(d, row, out):
+                return
             proc = d.nvp(row, *args)
             if not d.succeeded(row, proc):
                 row.resumed = False
                 return
             m = json.loads((out / "bundle.json").read_text())
             redone = [s for s, facts in kept.items() if m["stages"].get(s) != facts]
-            says = "resuming" in proc.stderr
-            row.resumed = not redone and (says or not kept)
+            said = [ln for ln in proc.stderr.splitlines() if "resuming" in ln]
+            row.resumed = not redone and (bool(said) or not kept)
             if redone:
                 row.fail(f"stages done before the kill were redone: {redone}")
-            if kept and not says:
-                row.fail("the rerun did not say it resumed")
+            if kept and len(said) != 1:
+                row.fail(f"the rerun said it resumed in {len(said)} lines, not one")
             if point == "renderer" and "from its last checkpoint" not in proc.stderr:
                 row.fail("renderer training did not go on from its checkpoint")
-            if point == "saved tracking" and "tracking goes on from frame 250 of" not in proc.stderr:
+            if point.startswith("saved tracking") and "tracking goes on from frame 250 of" not in proc.stderr:
                 row.fail("tracking did not go on from its last saved frame")
-            row.note = f"killed in {point}; kept {','.join(kept) or '-'}"
+            if point == "damaged saved tracking" and "tracking goes on" in proc.stderr:
+                row.fail("tracking went on from damaged landmarks")
+            row.note = f"killed in {point}; kept {','.join(kept) or '-'}" + (
+                f"; says ({said[0].rsplit(' (', 1)[-1]}" if said else ""
+            )
             info = d.nvp(row, "info", out)
             d.succeeded(row, info)
 
         return run
+
+    def partial(out: Path) -> Path:
+        return out.with_name(out.name + ".partial")
+
+    def junk_landmarks(d: Drill, row: Row, out: Path) -> bool:  # the saved landmarks' arrays filled with junk
+        seg = partial(out) / "tracking" / "segment-00000.json"
+        arrays = seg.parent / json.loads(seg.read_text())["arrays"]
+        arrays.write_bytes(
+            np.random.default_rng(0).integers(0, 256, arrays.stat().st_size, np.uint8).tobytes()
+        )
+        return True
+
+    def junk_checkpoint(
+        d: Drill, row: Row, out: Path
+    ) -> bool:  # refused in one line, then deleted by the user
+        ckpt = partial(out) / "renderer" / "checkpoint.pt"
+        ckpt.write_bytes(np.random.default_rng(0).integers(0, 256, ckpt.stat().st_size, np.uint8).tobytes())
+        target = out.parent / "longer.mp4" if (out.parent / "longer.mp4").exists() else VIDEO
+        proc = d.nvp(row, "fit", target, "-o", out, "--steps", 400)
+        d.refused(row, proc, "checkpoint.pt", "damaged", "delete it")
+        ckpt.unlink()
+        return row.ok
 
     def during(stage: str, before: str):
         return lambda out: before in stages_of(out) and stage not in stages_of(out)
@@ -550,6 +592,15 @@ def fit_kill_cases() -> dict[str, Callable[[Drill, Row], None]]:
         "fit_kill_renderer": case("renderer", training, steps=400),
         "fit_kill_register": case("register", during("register", "renderer")),
         "fit_kill_mouths": case("mouths", during("mouths", "register")),
+        "fit_kill_twice_tracking_then_style": case(
+            "saved tracking, then style", tracking_saved, video=three_times, again=during("style", "track")
+        ),
+        "fit_kill_tracking_saved_damaged": case(
+            "damaged saved tracking", tracking_saved, video=three_times, then=junk_landmarks
+        ),
+        "fit_kill_renderer_checkpoint_damaged": case(
+            "damaged renderer checkpoint", training, steps=400, then=junk_checkpoint
+        ),
     }
 
 
