@@ -535,13 +535,14 @@ def fit_kill_cases() -> dict[str, Callable[[Drill, Row], None]]:
                 row.fail(f"the rerun said it resumed in {len(said)} lines, not one")
             if point == "renderer" and "from its last checkpoint" not in proc.stderr:
                 row.fail("renderer training did not go on from its checkpoint")
-            if point.startswith("saved tracking") and "tracking goes on from frame 250 of" not in proc.stderr:
+            if point == "saved tracking" and "tracking goes on from frame 250 of" not in proc.stderr:
                 row.fail("tracking did not go on from its last saved frame")
             if point == "damaged saved tracking" and "tracking goes on" in proc.stderr:
                 row.fail("tracking went on from damaged landmarks")
-            row.note = f"killed in {point}; kept {','.join(kept) or '-'}" + (
+            seen = f"killed in {point}; kept {','.join(kept) or '-'}" + (
                 f"; says ({said[0].rsplit(' (', 1)[-1]}" if said else ""
             )
+            row.note = seen + (f"; {row.note}" if row.note else "")  # (a failure's reason stays in view)
             info = d.nvp(row, "info", out)
             d.succeeded(row, info)
 

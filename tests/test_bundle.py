@@ -639,3 +639,29 @@ def test_saved_tracking_of_another_video_or_nvp_is_not_resumed(demo_clip, tmp_pa
     with open(video, "ab") as f:
         f.write(b"\0")  # another video by content
     assert saved_frames(video, saves)[0] == 0
+
+
+def test_a_fit_whose_renderer_checkpoint_was_damaged_says_so_in_one_line(
+    demo_clip, tmp_path, monkeypatch, capsys
+):
+    """Found by scripts/drill_bundle.py: the resume line promised to go on from the checkpoint, then the
+    error came as a second line; now the damaged checkpoint is the only line, naming it."""
+    from nvp.app import fit as app_fit
+
+    class Training(Exception):
+        pass
+
+    def training(builder, *a, **k):
+        builder.path("renderer").mkdir(parents=True, exist_ok=True)
+        (builder.path("renderer") / "checkpoint.pt").write_bytes(b"PK\x03\x04" + bytes(range(256)) * 40)
+        raise Training
+
+    monkeypatch.setattr(app_fit, "_train_renderer", training)
+    p = tmp_path / "p"
+    with pytest.raises(Training):
+        app_fit.fit(demo_clip.path, p, app_fit.FitConfig(steps=1), progress=False)
+    monkeypatch.undo()
+    capsys.readouterr()
+    code, err = run_cli(capsys, "fit", demo_clip.path, "-o", p, "--steps", 1)
+    assert_refused((code, err), "checkpoint.pt", "damaged", "delete it")
+    assert "resuming" not in err, err

@@ -150,7 +150,12 @@ def fit(
     if builder.restarted:
         log.warning("%s held an interrupted fit %s; starting again", builder.work, builder.restarted)
     if builder.progress.get("stages"):  # every resumed run says so
-        training = not builder.done("renderer") and (builder.path("renderer") / "checkpoint.pt").exists()
+        ckpt = builder.path("renderer") / "checkpoint.pt"
+        training = not builder.done("renderer") and ckpt.exists()
+        if training:  # one error line, before a resume line that would promise to go on from it
+            from nvp.artifact import load_checkpoint
+
+            load_checkpoint(ckpt)
         more = "; renderer training goes on from its last checkpoint" if training else ""
         if not builder.done("track") and tracked is None:
             more = _tracking_resumes(builder)
