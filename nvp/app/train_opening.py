@@ -43,10 +43,12 @@ def train_opening(
     out: Path,
     ridges: tuple[float, ...] = RIDGES,
     provenance: dict | None = None,
+    kind: str = FEATURE_KIND,
 ) -> tuple[OpeningModel, dict]:
-    """Fit one model per ridge on ``train_set`` (windows of :data:`nvp.opening.FEATURE_KIND` features),
-    keep the one whose mean validation correlation is highest (the largest ridge on ties; the largest ridge
-    without validation videos), write ``out`` (.npz + .json) and return it with its summary."""
+    """Fit one model per ridge on ``train_set`` (windows of ``kind`` features, by default
+    :data:`nvp.opening.FEATURE_KIND`), keep the one whose mean validation correlation is highest (the largest
+    ridge on ties; the largest ridge without validation videos), write ``out`` (.npz + .json) and return it
+    with its summary."""
     if not train_set:
         raise NvpError("no training videos")
     widths = {s.windows.shape[2] for s in train_set + val_set}
@@ -61,7 +63,7 @@ def train_opening(
     ridge = max(fits, key=lambda r: (fits[r][2], r))
     m, per_video, score = fits[ridge]
     summary = {
-        "feature_kind": FEATURE_KIND,
+        "feature_kind": kind,
         "ridge": ridge,
         "validation_corr": score,
         "validation_corr_by_ridge": {f"{r:g}": v[2] for r, v in fits.items()},
@@ -69,5 +71,5 @@ def train_opening(
         "train_frames": int(sum(s.valid.sum() for s in train_set)),
         **(provenance or {}),
     }
-    manifest = OpeningModel(m.weight, m.bias, m.window_step, info=summary).save(out)
+    manifest = OpeningModel(m.weight, m.bias, m.window_step, info=summary, feature_kind=kind).save(out)
     return OpeningModel.load(manifest), summary
