@@ -695,7 +695,12 @@ def predict_expressions(
     from nvp.vad import voice_activity
     from nvp.windows import iter_frame_windows
 
-    feats, opening_feats, _ = speech_features(audio, sample_rate, style)
+    posteriors = None  # the recogniser's one pass, shared by the network's features and the alignment
+    if transcript is not None and style.feature_kind == "phonemes":
+        from nvp.audio_features import extract_features
+
+        posteriors = extract_features(audio, sample_rate, kind="phonemes")
+    feats, opening_feats, _ = speech_features(audio, sample_rate, style, posteriors=posteriors)
     # windows are made block by block: all of them at once would be (T, 16, 191) float32, 37 MB a minute
     blocks = iter_frame_windows(feats, fps, num_frames, block=WINDOW_BLOCK)
     audio_exp, closure = network_outputs(net, blocks)
@@ -705,7 +710,7 @@ def predict_expressions(
     if transcript is not None:
         from nvp.transcript import align_transcript, bilabial_weights
 
-        alignment = align_transcript(transcript[0], audio, sample_rate, transcript[1])
+        alignment = align_transcript(transcript[0], audio, sample_rate, transcript[1], posteriors)
         text_closure = bilabial_weights(alignment, fps, len(audio_exp))
     return apply_style(style, audio_exp, closure, voice, opening=z, text_closure=text_closure, fps=fps)
 
@@ -726,10 +731,15 @@ def opening_outputs(
 
 
 def speech_features(
-    audio: np.ndarray, sample_rate: int, style: PersonStyle, opening_from: int = 0
+    audio: np.ndarray,
+    sample_rate: int,
+    style: PersonStyle,
+    opening_from: int = 0,
+    posteriors: AudioFeatures | None = None,
 ) -> tuple[AudioFeatures, AudioFeatures | None, int]:
     """The network's features of mono audio ``(S,)`` for a style (speaker-normalised), the features of the
     opening model it was calibrated on (None without one), and the sample of ``audio`` where those start.
+    ``posteriors``: the recogniser's ``"phonemes"`` features of ``audio`` when already made (not made again).
 
     An opening model with a pass of its own (``"whisper"``) reads ``audio[opening_from:]`` (a stream needs
     less context for it than for the network); the ``"phonetic"`` one (people fitted before) comes from
@@ -737,10 +747,12 @@ def speech_features(
     from nvp.audio_features import extract_features, recogniser_features, speaker_normalized
 
     model = style_opening_model(style)
-    if model is None:
-        return speaker_normalized(extract_features(audio, sample_rate, kind=style.feature_kind)), None, 0
-    if style.feature_kind == "phonemes" and model.feature_kind == "phonetic":
+    if model is not None and style.feature_kind == "phonemes" and model.feature_kind == "phonetic":
         feats, phonetic = recogniser_features(audio, sample_rate)
         return speaker_normalized(feats), phonetic, 0
-    feats = speaker_normalized(extract_features(audio, sample_rate, kind=style.feature_kind))
+    if posteriors is None or style.feature_kind != "phonemes":
+        posteriors = extract_features(audio, sample_rate, kind=style.feature_kind)
+    feats = speaker_normalized(posteriors)
+    if model is None:
+        return feats, None, 0
     return feats, extract_features(audio[opening_from:], sample_rate, kind=model.feature_kind), opening_from

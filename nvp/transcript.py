@@ -14,10 +14,14 @@ from __future__ import annotations
 
 import unicodedata
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from nvp.errors import NvpError
+
+if TYPE_CHECKING:
+    from nvp.audio_features import AudioFeatures
 
 BILABIALS = frozenset({"p", "b", "m", "pʰ", "p͈", "ɓ", "ʙ"})
 """Recogniser labels (and espeak-ng phonemes) during which the lips are closed."""
@@ -137,16 +141,21 @@ def ctc_align(log_posteriors: np.ndarray, tokens: list[int], blank: np.ndarray) 
 
 
 def align_transcript(
-    text: str, audio: np.ndarray, sample_rate: int, language: str = "en-us"
+    text: str,
+    audio: np.ndarray,
+    sample_rate: int,
+    language: str = "en-us",
+    posteriors: AudioFeatures | None = None,
 ) -> PhonemeAlignment:
-    """The phonemes of ``text`` aligned to mono ``audio`` ``(S,)`` at ``sample_rate`` Hz."""
+    """The phonemes of ``text`` aligned to mono ``audio`` ``(S,)`` at ``sample_rate`` Hz; ``posteriors``:
+    the recogniser's ``"phonemes"`` features of ``audio`` when already made (not made again)."""
     from nvp.audio_features import extract_features, phoneme_labels
 
     labels = phoneme_labels()
     tokens = phoneme_tokens(text_phonemes(text, language), labels)
     if not tokens:
         raise NvpError(f"the transcript {text[:40]!r} has no phoneme the recogniser knows")
-    feats = extract_features(audio, sample_rate, kind="phonemes")
+    feats = extract_features(audio, sample_rate, kind="phonemes") if posteriors is None else posteriors
     lp = np.asarray(feats.values, np.float64)
     other = [i for i, name in enumerate(labels) if name in NON_PHONES]
     blank = np.logaddexp.reduce(lp[:, other], axis=1)

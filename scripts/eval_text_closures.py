@@ -20,6 +20,7 @@ people, ``scripts/eval_lipsync.py``) is the reference: 0.71 pooled, 0.77-0.86 on
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -103,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
         seq = s.tracked
         fps = seq.fps
         lead = int(round(BILABIAL_LEAD_S * fps))
-        sample = type(s)(s.name, s.windows, seq, opening_windows=ow)
+        sample = dataclasses.replace(s, opening_windows=ow)
         voiced = voiced_frames(video, fps, seq.num_frames)
         style = style_from_sample(net, manifest, sample, model, voiced=voiced, opening=opening)
         closed = closed_level(model.inner_lip_gap(seq.identity, seq.expression[seq.valid]))
