@@ -1,0 +1,83 @@
+"""Options and helpers shared by several commands (light: no torch until a command runs)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def add_device_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--device",
+        default="auto",
+        help="torch device: auto (cuda when a GPU is available, else cpu), cpu, cuda, cuda:1, ...",
+    )
+
+
+def add_style_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--style",
+        type=Path,
+        help="talk in another person's style: their bundle folder or person-map .json (default: their own)",
+    )
+
+
+def add_renderer_training_args(p: argparse.ArgumentParser, budget_minutes: float | None = None) -> None:
+    """The renderer-training options shared by train-renderer, fit and eval."""
+    from nvp.app.fit import FitConfig
+
+    add_preset_arg(p)
+    p.add_argument("--steps", type=int, help="renderer training steps (default: the preset's)")
+    p.add_argument(
+        "--budget-minutes",
+        type=float,
+        default=budget_minutes,
+        help="renderer training time (with --steps: whichever ends first)",
+    )
+    p.add_argument(
+        "--init",
+        default=FitConfig.renderer_init,
+        metavar="generic|scratch|FOLDER",
+        help="start renderer training from the shipped generic renderer (default), from scratch, or from "
+        "a renderer folder (nvp train-renderer / pretrain-renderer output)",
+    )
+
+
+def add_preset_arg(p: argparse.ArgumentParser) -> None:
+    from nvp.app.fit import FitConfig
+
+    p.add_argument(
+        "--preset", choices=("cpu", "quality", "paper"), default=FitConfig.preset, help="renderer preset"
+    )
+
+
+def add_features_arg(p: argparse.ArgumentParser) -> None:
+    """The speech features of a person map (train-audio2exp, person-map, fit)."""
+    from nvp.app.fit import FitConfig
+
+    p.add_argument(
+        "--features", choices=("phonemes", "mel"), default=FitConfig.features, help="speech features"
+    )
+
+
+def add_corpus_split_args(p: argparse.ArgumentParser) -> None:
+    """Validation and left-out videos of a training corpus (train-audio2exp, train-opening)."""
+    p.add_argument(
+        "--val", nargs="*", help="file names of validation videos (default: 5 spread over the list)"
+    )
+    p.add_argument("--exclude", nargs="*", help="file names to leave out entirely")
+
+
+def device(name: str) -> str:
+    """The torch device for ``--device`` (``auto`` picks cuda when torch sees a GPU)."""
+    if name != "auto":
+        return name
+    import torch
+
+    return "cuda" if torch.cuda.is_available() else "cpu"
+
+
+def nanmedian(x) -> float:
+    import numpy as np
+
+    return float(np.nanmedian(x)) if np.isfinite(x).any() else float("nan")
