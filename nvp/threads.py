@@ -8,7 +8,7 @@ other (OpenMP's busy waiting) and ``nvp dub`` falls from 21.6 to 6.5 frames/s, w
 sets ``torch.set_num_threads`` to the free cores, every few seconds, so a long job adapts when the load
 changes. A fixed count (``NVP_THREADS`` or ``OMP_NUM_THREADS`` in the environment, or ``threads``) turns
 the governor off (renderer training and ``nvp live`` use it). ``nvp dub`` and ``nvp eval`` instead render
-:func:`frame_workers` frames at once on one thread each (see :func:`renderer.render.render_frames`).
+:func:`frame_workers` frames at once on one thread each (see :func:`renderer.loop.render_frames`).
 """
 
 from __future__ import annotations
@@ -67,7 +67,7 @@ def fixed_threads() -> int | None:
 
 def frame_workers() -> int:
     """How many frames to render at once (one PyTorch thread each, see
-    :func:`renderer.render.render_frames`): the fixed count (:func:`fixed_threads`), else the cores this
+    :func:`renderer.loop.render_frames`): the fixed count (:func:`fixed_threads`), else the cores this
     process may use, at most PyTorch's own default thread count (hyper-threads do not speed the networks
     up)."""
     import torch

@@ -39,7 +39,7 @@ class MovedDetail:
         sigma: the band's scale in crop pixels.
         kept: ``(S, S)`` weight of the *painted frame's own* detail finer than ``sigma`` off the mesh, in
             place of the render's (the band around the surface the networks paint, where the footage's own
-            pixels are right: :meth:`renderer.render.FrameRenderer._kept_background`) when the source is
+            pixels are right: :meth:`renderer.band.DetailBand._kept_background`) when the source is
             another frame; None for none (a source that is the painted frame itself holds that band in
             ``fine`` and ``band``). Needs :func:`paste_region`'s ``detail``.
     """

@@ -5,14 +5,15 @@ or pale band, because they change with every frame and the texture cannot hold t
 shows this person's real teeth in every open-mouth frame. A *mouth bank* keeps a few dozen of those frames'
 mouth regions at the footage's resolution (chosen at fit time to cover the shapes the person's mouth takes); a
 rendered frame gets the interior of a bank frame whose inner lips are shaped like the new geometry's and
-whose interior looks most like the networks' own soft one (:meth:`renderer.render.FrameRenderer.entry_costs`),
+whose interior looks most like the networks' own soft one
+(:meth:`renderer.interior.MouthInteriors.entry_costs`),
 moved onto it through the mouth-interior triangles (the same surface correspondence as :mod:`renderer.warp`),
 and pasted where the new geometry shows the interior (Video Rewrite, Bregler et al. 1997, did this for the
 whole mouth; here only the interior, inside the rendered lips). Footage cut from several takes, or whose light
 drifts, holds mouths of other colours: the bank records the footage's light (the colour of the skin around the
 lips), an entry shot in other light than the footage frame behind the output frame costs as much as a far
 shape (:func:`light_costs`), and the pasted interior takes the rendered lips' colour
-(:meth:`renderer.render.FrameRenderer._colour_gains`).
+(:meth:`renderer.interior.MouthInteriors._colour_gains`).
 
 Pure functions for choosing frames and entries (:class:`EntryChooser`: a stream's entries without flicker);
 :func:`build_mouth_bank` decodes the footage.
@@ -47,7 +48,7 @@ LIGHT_TOLERANCE = 0.15
 same light. Pairs of a footage frame and a bank entry of the same take beyond it: 0.0 / 0.4 / 2.5 / 5.5 % on
 dfrf__cnn2, edtalk__pose_source2, wav2lipgfpgan kim, minimates__driving; of a footage cut from a magenta-lit
 and a daylight interview (voxceleb2_id00100's clips joined): 61 % (:func:`light_costs`). The renderer's
-training frames use it too (:func:`renderer.data.transient_light`): a frame's face against the footage's
+training frames use it too (:func:`renderer.train_data.transient_light`): a frame's face against the footage's
 median is at most 0.03-0.05 off on six single-take videos (multivsr hxn8clTtMTo's bearded face 0.135, kim's
 first two frames, a fade-in from dark, 0.18), while wth2025__lamazda's fades reach 0.65."""
 LIGHT_STEP = 5

@@ -123,7 +123,7 @@ class NeuralRenderer(nn.Module):
     dub covers the footage's own chin as well). Renderers of format 4 and older were trained without it.
 
     ``source_input``: the face network also takes ``source`` ``(B, 4, H, W)``: a footage frame's pixels
-    moved onto the rendered surface and their validity (:func:`renderer.data.moved_source`); it outputs
+    moved onto the rendered surface and their validity (:func:`renderer.inputs.moved_source`); it outputs
     colour plus a per-pixel weight of the moved pixels, so it can keep them exactly where they are right
     and paint where they are missing or wrong (the mouth interior, disocclusions).
 

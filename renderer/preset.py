@@ -41,7 +41,7 @@ class Preset:
     at its start; ``python scripts/bench_renderer.py``); None: not measured."""
     source_input: bool = False
     """Give the face network the footage's own pixels moved onto the rendered surface (see
-    :func:`renderer.data.moved_source`): in a dub the footage frame already shows this person's lower face
+    :func:`renderer.inputs.moved_source`): in a dub the footage frame already shows this person's lower face
     with all its detail, only in the old shape, so the network corrects and fills in (the mouth interior)
     instead of repainting skin from the neural texture. Trained with a different frame as the source.
     Off in the shipped presets until it is measured against them (training is about 25 % slower)."""

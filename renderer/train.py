@@ -24,7 +24,7 @@ from nvp.artifact import atomic_path, load_checkpoint
 from nvp.errors import FormatError
 from nvp.threads import ThreadGovernor
 from renderer.adversarial import critic_loss, generator_loss
-from renderer.data import FrameCache, Rasterizer, blank_face, moved_source
+from renderer.inputs import Rasterizer, blank_face, moved_source
 from renderer.networks import (
     NeuralRenderer,
     count_parameters,
@@ -35,6 +35,7 @@ from renderer.networks import (
     save_renderer,
 )
 from renderer.preset import Preset, get_preset
+from renderer.train_data import FrameCache
 
 log = logging.getLogger(__name__)
 
@@ -48,7 +49,7 @@ class RendererTrainConfig:
     """Renderer training settings (saved with the weights)."""
 
     preset: str = "cpu"
-    """Resolution / network size preset (``renderer.data.PRESETS``)."""
+    """Resolution / network size preset (``renderer.preset.PRESETS``)."""
     steps: int | None = None
     """Optimisation steps; None = as many as ``budget_s`` allows, or the preset's default without one."""
     budget_s: float | None = None

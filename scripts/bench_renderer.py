@@ -37,12 +37,12 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
 
     from nvp.face_model import default_face_model
-    from renderer.data import FrameCache
     from renderer.gl import GLRasterizer
     from renderer.networks import make_renderer, save_renderer
     from renderer.preset import PRESETS
     from renderer.render import FrameRenderer
     from renderer.train import RendererTrainConfig, train_renderer
+    from renderer.train_data import FrameCache
     from tracking.synthetic import synthetic_tracked
 
     model = default_face_model()

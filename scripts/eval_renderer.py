@@ -45,10 +45,11 @@ def evaluate(
     from nvp.media import iter_frames
     from nvp.metrics import psnr, ssim
     from renderer.crop import box_slices
-    from renderer.data import FrameCache, build_cache
+    from renderer.loop import render_frames
     from renderer.preset import get_preset
-    from renderer.render import FrameRenderer, render_frames
+    from renderer.render import FrameRenderer
     from renderer.train import RendererTrainConfig, train_renderer
+    from renderer.train_data import FrameCache, build_cache
 
     chosen = get_preset(preset)
     if source_input is not None:

@@ -14,8 +14,8 @@ sys.path.insert(0, str(Path(__file__).parent))
 from test_renderer import TINY  # noqa: E402
 
 from nvp.app.distributed import process_group  # noqa: E402
-from renderer.data import FrameCache  # noqa: E402
 from renderer.train import RendererTrainConfig, train_renderer  # noqa: E402
+from renderer.train_data import FrameCache  # noqa: E402
 
 if __name__ == "__main__":
     import torch

@@ -12,7 +12,7 @@ import torch
 
 from nvp.media import VideoWriter, iter_frames
 from renderer.crop import crop_boxes, crop_camera, cut, feather, paste, region_weight
-from renderer.data import build_cache, face_region
+from renderer.inputs import face_region
 from renderer.networks import (
     NeuralRenderer,
     NeuralTexture,
@@ -24,6 +24,7 @@ from renderer.networks import (
 )
 from renderer.preset import Preset
 from renderer.train import RendererTrainConfig, train_renderer
+from renderer.train_data import build_cache
 from tracking.synthetic import synthetic_tracked
 
 TINY = Preset("tiny", crop=32, base=4, dilated=False, texture_size=32, steps=2, batch=2, source_input=True)
@@ -256,7 +257,7 @@ def test_final_image_keeps_the_interior_inside_and_the_footage_outside():
 
 
 def test_the_frame_cache_keeps_to_its_memory_budget(footage, face_model):
-    from renderer.data import cache_frame_bytes
+    from renderer.train_data import cache_frame_bytes
 
     path, seq = footage
     per_frame = cache_frame_bytes(TINY.crop, face_model.num_vertices)
@@ -270,7 +271,7 @@ def test_the_frame_cache_keeps_to_its_memory_budget(footage, face_model):
 
 
 def test_frames_in_a_passing_light_are_told_from_another_take():
-    from renderer.data import transient_light
+    from renderer.train_data import transient_light
 
     light = np.tile(np.float32([180, 140, 120]), (400, 1))
     light[100:110] = [230, 215, 210]  # a 0.4 s fade towards white
@@ -748,8 +749,9 @@ def test_bfloat16_rendering_stays_within_a_few_levels_of_float32(footage, face_m
 
 def test_frames_rendered_in_parallel_equal_one_at_a_time_in_order(footage, face_model, tmp_path):
     from nvp.geometry import posed
+    from renderer.loop import MOUTH_LAG, render_frames
     from renderer.mouths import EntryChooser, build_mouth_bank
-    from renderer.render import MOUTH_LAG, FrameRenderer, render_frames
+    from renderer.render import FrameRenderer
 
     path, seq = footage
     cache = build_cache(path, seq, face_model, TINY, np.arange(10), progress=False)
@@ -800,9 +802,10 @@ def test_frames_rendered_in_parallel_equal_one_at_a_time_in_order(footage, face_
 def test_an_open_rendered_mouth_shows_the_person_s_own_interior_from_the_bank(footage, face_model, tmp_path):
     from nvp.geometry import posed
     from renderer.gl import GLRasterizer
+    from renderer.interior import INTERIOR_TOLERANCE
     from renderer.masks import dilate
     from renderer.mouths import build_mouth_bank
-    from renderer.render import INTERIOR_TOLERANCE, FrameRenderer
+    from renderer.render import FrameRenderer
 
     path, seq = footage
     cache = build_cache(path, seq, face_model, TINY, np.arange(10), progress=False)
@@ -882,7 +885,7 @@ def test_the_bank_entry_whose_interior_looks_like_the_networks_own_is_chosen(
 ):
     """Two bank entries of the same inner-lip shape and light: the one whose interior agrees with the
     networks' soft interior (here: all grey) wins, and only the nearest ``CANDIDATES`` are compared."""
-    import renderer.render as render_module
+    import renderer.interior as render_module
     from renderer.render import FrameRenderer
 
     path, seq = footage

@@ -2,7 +2,7 @@
 
 audio → expressions of the person (``nvp.person.predict_expressions``) → target frames played forward then
 backward as long as the audio lasts (head pose, eyes and blinks from the footage) → mouth from the audio
-→ neural rendering composited into the footage (``renderer.render.render_frames``) → mp4 with the input
+→ neural rendering composited into the footage (``renderer.loop.render_frames``) → mp4 with the input
 audio, marked as synthetic.
 
 The video is encoded in parts of :data:`PART_FRAMES` frames, kept beside the output
@@ -154,7 +154,8 @@ def dub(
     from nvp.schedule import target_frame_indices
     from nvp.vad import speech_activity
     from nvp.windows import num_video_frames
-    from renderer.render import FrameRenderer, render_frames
+    from renderer.loop import render_frames
+    from renderer.render import FrameRenderer
 
     t_start = time.perf_counter()
     check_output_place(check_output_file(output, inputs=(audio_path,)), (audio_path, bundle_dir, style))
@@ -294,7 +295,7 @@ class DubParts:
         decided: list[dict[str, int | None]],
         seq: TrackedSequence,
     ) -> None:
-        """Encodes the frames after the finished parts (``made`` by :func:`renderer.render.render_frames`,
+        """Encodes the frames after the finished parts (``made`` by :func:`renderer.loop.render_frames`,
         which fills ``decided`` with their entries) part after part; a part is finished once its video is
         complete and its last frame's entries are recorded."""
         from nvp.artifact import write_json

@@ -218,8 +218,9 @@ def evaluate_video(
     from nvp.provenance import synthetic_mark
     from nvp.tracked import TrackedSequence
     from renderer.crop import box_slices
+    from renderer.loop import render_frames
     from renderer.register import registered, registration_offsets
-    from renderer.render import FrameRenderer, render_frames
+    from renderer.render import FrameRenderer
     from tracking.landmarks import LandmarkDetector
     from tracking.track import track_video
 

@@ -456,9 +456,9 @@ def _train_renderer(builder: BundleBuilder, cfg: FitConfig, progress: bool) -> d
     training summary (``renderer.train.train_renderer``)."""
     from nvp.errors import FormatError
     from nvp.face_model import default_face_model
-    from renderer.data import CACHE_BUDGET_MB, FrameCache, build_cache
     from renderer.preset import get_preset
     from renderer.train import RendererTrainConfig, train_renderer
+    from renderer.train_data import CACHE_BUDGET_MB, FrameCache, build_cache
 
     preset = get_preset(cfg.preset)
     seq = TrackedSequence.load(builder.path("tracked"))

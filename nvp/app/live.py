@@ -145,7 +145,8 @@ def live(
     from nvp.stream import LOOKAHEAD_S, ExpressionStream
     from nvp.threads import ThreadGovernor, frame_workers
     from renderer.mouths import EntryChooser
-    from renderer.render import FrameRenderer, RenderWorkers
+    from renderer.render import FrameRenderer
+    from renderer.workers import RenderWorkers
 
     if output is None and raw_out is None:
         raise NvpError("give an output: -o live.mp4 and/or --raw (frames on stdout)")

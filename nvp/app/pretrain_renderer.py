@@ -35,12 +35,12 @@ def corpus_videos(folder: Path, exclude: list[str] | None = None) -> list[Path]:
 
 
 def video_frames(video: Path, cache: Path, preset_name: str, max_frames: int, progress: bool):
-    """The renderer's training frames of one video (``renderer.data.FrameCache``), built once and kept in
-    ``cache/renderer_frames``."""
+    """The renderer's training frames of one video (``renderer.train_data.FrameCache``), built once and
+    kept in ``cache/renderer_frames``."""
     from nvp.app.corpus import cache_key, tracked_cached
     from nvp.face_model import default_face_model
-    from renderer.data import FrameCache, build_cache, cache_frame_bytes
     from renderer.preset import get_preset
+    from renderer.train_data import FrameCache, build_cache, cache_frame_bytes
 
     preset, model = get_preset(preset_name), default_face_model()
     key = cache_key(video)

@@ -28,7 +28,8 @@ def run(args: argparse.Namespace) -> int:
     from nvp.media import VideoWriter, audio_rate, has_audio, iter_frames, read_audio
     from nvp.provenance import synthetic_mark
     from nvp.tracked import TrackedSequence
-    from renderer.render import FrameRenderer, render_frames
+    from renderer.loop import render_frames
+    from renderer.render import FrameRenderer
 
     check_output_file(args.output, inputs=(args.video,))
     seq = TrackedSequence.load(args.track_dir)

@@ -198,9 +198,9 @@ def run_train_renderer(args: argparse.Namespace) -> int:
     from nvp.face_model import default_face_model
     from nvp.media import probe_video
     from nvp.tracked import TrackedSequence
-    from renderer.data import build_cache
     from renderer.preset import get_preset
     from renderer.train import RendererTrainConfig, train_renderer
+    from renderer.train_data import build_cache
 
     seq = TrackedSequence.load(args.track_dir)
     info = probe_video(args.video)
