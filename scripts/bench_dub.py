@@ -26,15 +26,15 @@ import time
 from pathlib import Path
 
 STAGES = {
-    "decode": ("nvp/media.py", "frames_at"),
-    "rasterize": ("renderer/data.py", "__call__"),
+    "decode": ("nvp/media/frames.py", "frames_at"),
+    "rasterize": ("renderer/inputs.py", "__call__"),
     "network": ("renderer/networks.py", "forward"),
-    "detail transfer": ("renderer/render.py", "_moved"),
-    "detail band": ("renderer/render.py", "_band"),
+    "detail transfer": ("renderer/band.py", "_moved"),
+    "detail band": ("renderer/band.py", "_band"),
     "crop": ("renderer/crop.py", "cut"),
-    "teeth choice": ("renderer/render.py", "entry_costs"),
+    "teeth choice": ("renderer/interior.py", "entry_costs"),
     "paste": ("renderer/crop.py", "paste_region"),
-    "encode": ("nvp/media.py", "write"),
+    "encode": ("nvp/media/writer.py", "write"),
     "audio → expressions": ("nvp/person.py", "predict_expressions"),
 }
 """Stage → (file, function) whose cumulative time is the stage's."""

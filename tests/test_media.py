@@ -128,8 +128,8 @@ def test_start_frame_and_max_frames(clip: Path) -> None:
 
 
 def test_frames_at_any_order_keeps_only_the_frames_asked_for(clip: Path, monkeypatch) -> None:
-    from nvp import media
     from nvp.errors import MediaError
+    from nvp.media import frames as media  # where frames_at looks iter_frames up
 
     every = list(iter_frames(clip))
     order = np.array([9, 0, 4, 4, 2, 9, 1])
@@ -162,7 +162,7 @@ def test_frames_at_any_order_keeps_only_the_frames_asked_for(clip: Path, monkeyp
 def test_frames_at_decodes_on_while_the_chunks_move_forward(clip: Path, monkeypatch) -> None:
     """A dub reads its footage forward (and back, ping-pong): one decoder runs on from chunk to chunk
     instead of seeking again (which decodes from the keyframe before each chunk)."""
-    from nvp import media
+    from nvp.media import frames as media
 
     every = list(iter_frames(clip))
     opened, real = [], media.iter_frames
@@ -401,7 +401,7 @@ def test_video_without_audio(tmp_path: Path) -> None:
 
 
 def test_decode_error_names_frame_index(clip: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    real_decode = media._decode
+    real_decode = media.frames._decode
 
     def failing_decode(container, stream):
         for n, frame in enumerate(real_decode(container, stream)):
@@ -409,7 +409,7 @@ def test_decode_error_names_frame_index(clip: Path, monkeypatch: pytest.MonkeyPa
                 raise av.error.InvalidDataError(1094995529, "Invalid data found when processing input")
             yield frame
 
-    monkeypatch.setattr(media, "_decode", failing_decode)
+    monkeypatch.setattr(media.frames, "_decode", failing_decode)
     frames = iter_frames(clip)
     with pytest.raises(MediaError, match="at output frame 3 of 10"):
         for _ in frames:
