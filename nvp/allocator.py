@@ -6,7 +6,7 @@ resolution, the paste's region). With glibc's defaults the freed top of the heap
 of a 1080p paste's maps that takes 0.2 ms took 1.1 ms that way, and two render threads faulting pages at once
 wait on each other in the kernel. :func:`keep_freed_memory` raises the trim threshold to 1 GB and serves
 requests below 32 MB (glibc's largest threshold) from the heap; peak memory stays what the job needs (the
-freed arrays are reused by the next frame). Measured with ``scripts/bench_dub.py`` in the closing notes and
+freed arrays are reused by the next frame). Measured with ``scripts/bench/dub.py`` in the closing notes and
 docs/experiments/memory.md.
 """
 

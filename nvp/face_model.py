@@ -6,7 +6,7 @@ translation ``(0, 0, d)`` the face is frontal at distance ``d`` cm.
 
 On disk a model is ``<name>.npz`` (arrays) plus ``<name>.json`` (format version, shapes, sha256 of the
 npz, build recipe and the data it saw). The default model ships in ``nvp/assets``; it is built by
-``scripts/build_face_model.py``.
+``scripts/tools/build_face_model.py``.
 """
 
 from __future__ import annotations
@@ -174,5 +174,5 @@ class FaceModel:
 
 @lru_cache(maxsize=1)
 def default_face_model() -> FaceModel:
-    """The face model that ships with nvp (built by ``scripts/build_face_model.py``)."""
+    """The face model that ships with nvp (built by ``scripts/tools/build_face_model.py``)."""
     return FaceModel.load(ASSETS / f"{DEFAULT_NAME}.json")

@@ -21,7 +21,7 @@ from nvp.person import PersonStyle, apply_style, opening_outputs, speech_feature
 SAMPLE_RATE = 16000
 LOOKAHEAD_S = 0.4
 """Audio after a frame's time that must have arrived before the frame is predicted (see the module
-docstring; ``scripts/bench_live.py`` measures what it costs against whole-file prediction)."""
+docstring; ``scripts/bench/live.py`` measures what it costs against whole-file prediction)."""
 CONTEXT_S = 4.0
 """Audio before the first new frame that each step re-reads (the recogniser's and the filter's past).
 Streamed in 0.2 s steps with a 0.4 s look-ahead, the inner-lip gap of two test clips
@@ -34,7 +34,7 @@ OPENING_CONTEXT_S = 2.0
 """Audio before the first new frame that each step re-reads for the opening model's Whisper features (its
 read-out looks 0.16 s around a frame, and Whisper costs in proportion to the audio it reads; a person fitted
 with the earlier ``"phonetic"`` opening model takes them from the recogniser's pass over ``CONTEXT_S``).
-``scripts/bench_live.py`` on a 512² person and a 19.8 s clip, streamed vs whole-file inner-lip gap
+``scripts/bench/live.py`` on a 512² person and a 19.8 s clip, streamed vs whole-file inner-lip gap
 correlation / compute per second of audio: 4 s (= CONTEXT_S) 0.963 / 160-167 ms, 2 s 0.959 / 134-148 ms,
 1 s 0.948 / 123-139 ms (the earlier phonetic model: 0.960 / 100-107 ms)."""
 

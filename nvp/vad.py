@@ -220,7 +220,7 @@ def speech_activity(audio: np.ndarray, sample_rate: int, min_active_s: float = S
 
 VOICE_RAMP = (0.5, 0.8)
 """Speech probabilities mapped linearly onto voice activity 0 … 1 (below: 0, above: 1). Chosen with
-``scripts/eval_vad.py`` on the speech clips of ``../shared/data/audio`` (no test video): against (0.3, 0.7),
+``scripts/eval/vad.py`` on the speech clips of ``../shared/data/audio`` (no test video): against (0.3, 0.7),
 pauses cut into speech under white noise close within 0.2 s in 89 % instead of 74 % of cases at 10 dB SNR
 and 66 % instead of 37 % at 0 dB (clean: 100 % both); speech frames with activity >= 0.5: 84.1 % vs 84.8 %."""
 VOICE_LEAD_S = 0.12

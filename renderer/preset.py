@@ -38,7 +38,7 @@ class Preset:
     preset)."""
     step_seconds: float | None = None
     """Rough seconds per training step on the 2-core CPU nvp is measured on (the time a fit expects, printed
-    at its start; ``python scripts/bench_renderer.py``); None: not measured."""
+    at its start; ``python -m scripts.bench.renderer``); None: not measured."""
     source_input: bool = False
     """Give the face network the footage's own pixels moved onto the rendered surface (see
     :func:`renderer.inputs.moved_source`): in a dub the footage frame already shows this person's lower face

@@ -93,7 +93,7 @@ class FrameCache:
 CACHE_BUDGET_MB = 1536.0
 """Most memory the renderer's training frames may take (:func:`build_cache`). A 3-minute video is 4,500
 frames: 1.6 GB at the ``cpu`` preset's 192² crop, 2.9 GB at ``quality``'s 256², which took ``nvp fit`` on a
-3-minute 1080p video to 5.5 GB peak (``scripts/bench_fit.py --preset quality``). Beyond the budget every
+3-minute 1080p video to 5.5 GB peak (``scripts/bench/fit.py --preset quality``). Beyond the budget every
 n-th frame is kept; neighbouring frames are nearly alike, and a fit draws 16,000 training samples at most."""
 
 

@@ -644,7 +644,7 @@ def test_saved_tracking_of_another_video_or_nvp_is_not_resumed(demo_clip, tmp_pa
 def test_a_fit_whose_renderer_checkpoint_was_damaged_says_so_in_one_line(
     demo_clip, tmp_path, monkeypatch, capsys
 ):
-    """Found by scripts/drill_bundle.py: the resume line promised to go on from the checkpoint, then the
+    """Found by scripts/tools/drill_bundle.py: the resume line promised to go on from the checkpoint, then the
     error came as a second line; now the damaged checkpoint is the only line, naming it."""
     from nvp.app import fit as app_fit
 

@@ -170,3 +170,26 @@ def test_the_checker_catches_what_rots():
     assert simple_commands("A=1 .venv/bin/nvp serve  # then open") == [[".venv/bin/nvp", "serve"]]
     assert simple_commands("a -x | b - && c") == [["a", "-x"], ["b", "-"], ["c"]]
     assert options(["-o", "x", "--a=1", "-", "--b"]) == ["-o", "--a", "--b"]
+
+
+SCRIPT_PATH = re.compile(r"(?<![\w./-])scripts/[\w/.-]*\w\.(?:py|sh|json)\b")
+SCRIPT_MODULE = re.compile(r"-m (scripts(?:\.\w+)+)(?![\w.])")
+
+
+def test_every_script_the_docs_and_sources_name_exists():
+    """``scripts/…`` paths and ``python -m scripts.…`` modules named in the README, the docs, the tests,
+    CI and the sources all exist (scripts move by kind: a stale path would rot silently)."""
+    texts = [README, ROOT / ".ci" / "run", *(ROOT / "docs").rglob("*.md")]
+    for folder in ("nvp", "tracking", "renderer", "scripts", "tests"):
+        texts += list((ROOT / folder).rglob("*.py"))
+    texts += list((ROOT / "scripts").rglob("*.sh"))
+    dead = set()
+    for path in texts:
+        text = path.read_text()
+        where = path.relative_to(ROOT)
+        dead |= {(str(where), m) for m in SCRIPT_PATH.findall(text) if not (ROOT / m).exists()}
+        for module in SCRIPT_MODULE.findall(text):
+            file = ROOT.joinpath(*module.split("."))
+            if not (file.with_suffix(".py").is_file() or (file / "__main__.py").is_file()):
+                dead.add((str(where), module))
+    assert not dead, sorted(dead)

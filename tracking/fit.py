@@ -61,7 +61,7 @@ class TrackingConfig:
     trained on the plain tracking, mouth box, pooled PSNR; flow over the whole frame, all lip landmarks):
     0.6 / 0.8 / 0.9 gave +0.18 / +0.29 / +0.29 and +0.21 / +0.37 / +0.41 dB; the detections smoothed in time
     instead (Gaussian σ 1 / 2 frames) −0.18 / −0.46 dB on edtalk. As built (outer contour,
-    :func:`tracking.lipflow.lip_landmarks`; ``scripts/lower_face_limits.py``): dfrf__cnn2 29.04 → 29.18,
+    :func:`tracking.lipflow.lip_landmarks`; ``scripts/eval/lower_face_limits.py``): dfrf__cnn2 29.04 → 29.18,
     edtalk 28.91 → 29.16, wav2lipgfpgan kim 28.76 → 29.09; the test people minimates 27.56 → 27.67, multivsr
     22.68 → 22.77, voxceleb2_id00100 29.27 → 29.37 dB."""
     max_error: float = 0.06

@@ -1,0 +1,1 @@
+"""Benchmarks: speed and memory (``python -m scripts.bench.all`` runs them together)."""
