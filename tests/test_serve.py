@@ -559,7 +559,10 @@ def test_say_text_is_never_an_option_and_limits_are_clear(make_client, demo_clip
 
 
 def test_idle_and_surplus_connections_are_closed(make_client):
-    c = make_client(start=False, limits=Limits(request_timeout_s=8, max_connections=2))
+    """A connection beyond ``max_connections`` is answered 503 at once; an idle one is closed after the
+    server's timeout. No margin of wall time: the slots are held by connections whose timeout cannot pass
+    during the check, and the closing is awaited (the read returns when the server closes)."""
+    c = make_client(start=False, limits=Limits(request_timeout_s=DEADLINE, max_connections=2))
     idle = [socket.create_connection(("127.0.0.1", c.port), timeout=30) for _ in range(2)]
     try:
         idle[0].sendall(b"GET / HTTP/1.0\r\nHost: ")  # half a request, then nothing
@@ -567,6 +570,14 @@ def test_idle_and_surplus_connections_are_closed(make_client):
         with socket.create_connection(("127.0.0.1", c.port), timeout=30) as third:
             answer = third.recv(4096)
         assert answer.startswith(b"HTTP/1.0 503") and b'"error"' in answer
+    finally:
+        for s in idle:
+            s.close()
+    until(lambda: c.server._slots._value == 2, "the slots to be given back", 30)
+    c.server.RequestHandlerClass.timeout = 0.2  # connections from now on: a short timeout
+    idle = [socket.create_connection(("127.0.0.1", c.port), timeout=30) for _ in range(2)]
+    try:
+        idle[0].sendall(b"GET / HTTP/1.0\r\nHost: ")
         for s in idle:  # the server closes them after its timeout
             assert s.recv(4096) == b""
     finally:
