@@ -29,7 +29,7 @@ from nvp.face_model import default_face_model
 from nvp.media import read_audio
 from nvp.person import predict_expressions, style_from_sample
 from nvp.vad import rms_envelope_db, voice_activity
-from scripts.common import ROOT, SHARED
+from scripts.common import ROOT, SHARED, data_missing
 
 ASSETS = ROOT / "nvp" / "assets"
 SR = 16000
@@ -42,8 +42,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cache", type=Path, default=Path("out/a2e/cache"))
     ap.add_argument("--out", type=Path, default=Path("out/eval_audio2exp"))
     args = ap.parse_args(argv)
-    if not SHARED.is_dir():
-        print(f"no evaluation data: {SHARED} does not exist")
+    if data_missing(SHARED):
         return 0
     model = default_face_model()
     net, manifest = load_net(args.phonemes)

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from scripts.common import SHARED
+from scripts.common import SHARED, data_missing
 
 DATA = SHARED
 TARGETS = ["edtalk__pose_source2.mp4", "mimictalk__German_20s.mp4", "styletalk__Obama_clip2_av.mp4"]
@@ -99,8 +99,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--budget-minutes", type=float, default=10.0)
     ap.add_argument("--out", type=Path, default=Path("out/eval_dub"))
     args = ap.parse_args(argv)
-    if not DATA.is_dir():
-        print(f"no evaluation data: {DATA} does not exist")
+    if data_missing(DATA):
         return 0
     import soundfile as sf
 

@@ -34,7 +34,7 @@ from nvp.metrics import bilabial_classes, bilabial_frames
 from nvp.opening import DEFAULT_PATH, OpeningModel
 from nvp.person import OPENING_WEIGHT, RANGE_GAIN_MAX, VideoSample, style_expressions, style_from_sample
 from nvp.vad import frame_speech_probability, voice_activity
-from scripts.common import SHARED
+from scripts.common import SHARED, data_missing
 
 SR = 16000
 COLOURS = {"real": (0, 200, 0), "before": (0, 0, 230), "after": (230, 80, 0)}  # BGR
@@ -116,8 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cache", type=Path, default=Path("/tmp/nvp-cache"))
     ap.add_argument("--out", type=Path, default=Path("out/lipsync_stills"))
     args = ap.parse_args(argv)
-    if not SHARED.is_dir():
-        print(f"no evaluation data: {SHARED} does not exist")
+    if data_missing(SHARED):
         return 0
     nets = {"before": load_net(args.before), "after": load_net(args.after)}
     args.out.mkdir(parents=True, exist_ok=True)

@@ -46,7 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
-from scripts.common import VIDEOS
+from scripts.common import VIDEOS, data_missing
 
 SHARED = VIDEOS
 VARIANTS = (
@@ -321,8 +321,7 @@ def main(argv: list[str] | None = None) -> int:
 
     add_variant_arguments(ap)
     args = ap.parse_args(argv)
-    if not SHARED.is_dir():
-        print(f"no evaluation data: {SHARED} does not exist")
+    if data_missing(SHARED):
         return 0
     results = [
         evaluate(SHARED / v, args.out, args.cache, args.budget_minutes, args.step, args.max_frames, args)

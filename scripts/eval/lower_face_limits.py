@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from scripts.common import VIDEOS
+from scripts.common import VIDEOS, data_missing
 
 SHARED = VIDEOS
 
@@ -154,8 +154,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--max-frames", type=int, default=60, help="at most this many frames per video")
     ap.add_argument("--sigma", type=float, default=2.0, help="coarse / fine split: Gaussian σ, frame pixels")
     args = ap.parse_args(argv)
-    if not SHARED.is_dir():
-        print(f"no evaluation data: {SHARED} does not exist")
+    if data_missing(SHARED):
         return 0
     rows = []
     for v in args.videos:

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from scripts.common import SHARED, SPLIT
+from scripts.common import SHARED, SPLIT, data_missing
 
 FRACTIONS = (0.25, 0.5, 0.75, 1.0)
 
@@ -35,8 +35,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cache", type=Path, default=Path("/tmp/nvp-cache"))
     ap.add_argument("--repeats", type=int, default=3, help="random subsets per fraction below 100 %%")
     args = ap.parse_args(argv)
-    if not SHARED.is_dir():
-        print(f"no evaluation data: {SHARED} does not exist")
+    if data_missing(SHARED):
         return 0
     split = json.loads(args.split.read_text())
     model = default_face_model()

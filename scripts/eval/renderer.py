@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from scripts.common import VIDEOS
+from scripts.common import VIDEOS, data_missing
 
 SHARED = VIDEOS
 DEFAULT_VIDEOS = ["dfrf__cnn2_25fps.mp4", "mimictalk__German_20s.mp4", "styletalk__Obama_clip2_av.mp4"]
@@ -167,8 +167,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=Path("out/eval_renderer"))
     add_variant_arguments(ap)
     args = ap.parse_args(argv)
-    if not SHARED.is_dir():
-        print(f"no evaluation data: {SHARED} does not exist")
+    if data_missing(SHARED):
         return 0
     rows = [
         evaluate(

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from scripts.common import SHARED
+from scripts.common import SHARED, data_missing
 
 DEFAULT_PAIRS = ["mimictalk__German_20s.mp4", "dfrf__cnn2_25fps.mp4"]
 
@@ -40,8 +40,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cache", type=Path, default=Path("/tmp/nvp-cache"))
     ap.add_argument("--out", type=Path, default=Path("out/eval_style_transfer"))
     args = ap.parse_args(argv)
-    if not SHARED.is_dir():
-        print(f"no evaluation data: {SHARED} does not exist")
+    if data_missing(SHARED):
         return 0
     if len(args.pairs) % 2:
         ap.error("--pairs takes clips two by two (A B)")
