@@ -90,9 +90,13 @@ class TrackedSequence:
 
     def head(self, num_frames: int) -> TrackedSequence:
         """The first ``num_frames`` frames (same camera and identity)."""
-        n = int(num_frames)
+        return self.frames(slice(0, int(num_frames)))
+
+    def frames(self, index: slice | np.ndarray) -> TrackedSequence:
+        """The frames ``index`` selects (a slice, indices or a ``(T,)`` bool mask), in that order (same
+        camera and identity)."""
         per_frame = ("rotation", "translation", "expression", "landmarks", "valid", "fit_error")
-        return dataclasses.replace(self, **{k: getattr(self, k)[:n] for k in per_frame})
+        return dataclasses.replace(self, **{k: getattr(self, k)[index] for k in per_frame})
 
     def camera_vertices(
         self, model: FaceModel, frames: np.ndarray, expression: np.ndarray | None = None

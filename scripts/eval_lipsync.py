@@ -2,13 +2,17 @@
 
     python scripts/eval_lipsync.py [--set test] [--cache /tmp/nvp-cache] [--out out/eval_lipsync]
 
-Per video of the chosen split (default: test, people never used for training or choosing anything): the
-person's style is made from the first 80 % of the frames exactly as ``nvp fit`` makes it
-(``nvp.person.style_from_sample`` with the voice activity of that part), the last 20 % is predicted from audio
-as ``nvp dub`` predicts it (``nvp.person.apply_style``: network, person map, closures, voice activity of
-``nvp.vad.voice_activity``; the opening model ``nvp.opening`` blended in with ``--opening-weight``, 0 for
-none, and deciding the closures; without it the closure head does), and the tracked mesh's inner-lip gap of
-the prediction is compared with the tracked gap of the real frames (expression level; nothing is rendered).
+Per video of the chosen split (default: test, people never used for training or choosing anything), in
+``--folds`` (default 5) consecutive parts: each part is predicted from a style made on all the other frames
+exactly as ``nvp fit`` makes it (``nvp.person.style_from_sample`` with the voice activity of those frames), so
+every frame is held out once (``--folds 1``: the style from the first 80 %, the last 20 % predicted, as
+``nvp eval`` does; on clips of 4-13 s that is 1-3 s of speech, and the clip's leading silence is always on the
+fitting side). The prediction is made as ``nvp dub`` makes it (``nvp.person.apply_style``: network, person
+map, closures, voice activity of ``nvp.vad.voice_activity``; the opening model ``nvp.opening`` blended in with
+``--opening-weight``, 0 for none, and deciding the closures; without it the closure head does), and the
+tracked mesh's inner-lip gap of the prediction is compared with the tracked gap of the real frames
+(expression level; nothing is rendered).
+
 The held-out audio is used clean and with white noise mixed in at 10 and 0 dB SNR (noise level relative to the
 clean held-out speech's active level); features and voice activity then see the noisy audio, while the truth
 (real mouth, bilabial frames, pauses) comes from the real video and its clean audio.
@@ -16,7 +20,7 @@ clean held-out speech's active level); features and voice activity then see the 
 Metrics (``nvp.metrics``), output next to the real video's own number where one exists:
 
 - closure precision / recall / F1: frames whose gap is below the real video's closed level (``min + 0.15
-  (p95 - min)`` of its tracked gap on the first 80 %);
+  (p95 - min)`` of its tracked gap on the whole clip; with ``--folds 1``, on the first 80 %);
 - bilabial closure rate: frames where the clean audio says p, b or m (phoneme recogniser's posteriors of
   those phones summing to >= 0.5) with the mouth at or below the closed level at some frame from
   ``BILABIAL_LEAD_S`` (0.16 s) before to the frame (the recogniser marks the release); pooled
@@ -28,15 +32,17 @@ Metrics (``nvp.metrics``), output next to the real video's own number where one 
   resting level); and the mouth's motion in pauses relative to speech (mean |frame-to-frame change of the
   gap|, pauses / speech);
 - jitter ratio (mean |second difference| of the gap, output / real) and the audio-visual offset in frames
-  (``nvp.metrics.av_offset`` of the two gaps; positive: the output is late), median over videos.
+  (``nvp.metrics.av_offset`` of the two gaps within ``RESYNC_MAX_LAG``; positive: the output is late), median
+  over videos; the synced correlation is the opening correlation at that offset (the shape of the opening
+  whatever the footage's own sync: some test clips are 4-12 frames out of sync with their audio).
 
 Tracking and features are cached under ``--cache`` (``nvp.app.corpus.load_sample``).
 
 ``--joined``: the clips are 3-60 s, most under 10 s, while ``nvp fit`` is meant for 1-3 minutes of footage
 (and corrects the opening model on footage of 16 s or more, ``nvp.opening.adapted_opening_model``).
 Instead of single clips, each person of the set with several clips of one size and frame rate is evaluated
-on their clips joined one after another (written once under ``--cache``/joined): the first 80 % of that
-footage makes the style, the last 20 % (the last clips) is predicted.
+on their clips joined one after another (written once under ``--cache``/joined), cut into folds as a single
+clip is.
 """
 
 from __future__ import annotations
@@ -47,6 +53,7 @@ import json
 import sys
 import time
 from collections import defaultdict
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -118,6 +125,36 @@ def joined_footage(clips: list[Path], out: Path) -> Path | None:
     return out
 
 
+def fold_parts(n: int, folds: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``(fit, held_out)`` frame indices per fold: with one fold the first ``TRAIN_FRACTION`` of the frames
+    make the style and the rest is predicted (``nvp eval``'s protocol); with ``folds`` > 1 the clip is cut
+    into that many consecutive parts and each is predicted from a style made on all the others, so every
+    frame is held out once and no part of the clip (its leading silence, say) is always on the fitting
+    side."""
+    if folds == 1:
+        split = int(round(n * TRAIN_FRACTION))
+        return [(np.arange(split), np.arange(split, n))]
+    bounds = np.round(np.linspace(0, n, folds + 1)).astype(int)
+    frames = np.arange(n)
+    return [(np.setdiff1d(frames, frames[a:b]), frames[a:b]) for a, b in pairwise(bounds)]
+
+
+RESYNC_MAX_LAG = 12
+"""Frames (about 0.5 s) the output may be shifted against the footage for the synced correlation: some test
+clips (TV drama, film) are themselves 4-12 frames out of sync with their audio, see
+docs/experiments/audio-features.md."""
+
+
+def synced(gap: np.ndarray, gap_real: np.ndarray, varies: bool) -> tuple[int, float]:
+    """``(lag, correlation)``: the shift of the output's gap ``(T,)`` (NaN outside the held-out frames) that
+    best matches the real gap, within :data:`RESYNC_MAX_LAG`, and the correlation there; the same for every
+    clip and language, so it measures how well the opening's shape follows the footage whatever the
+    footage's own audio-visual offset (the lag itself is reported as the AV offset)."""
+    if not varies:
+        return 0, 0.0
+    return av_offset(gap, gap_real, RESYNC_MAX_LAG)
+
+
 def evaluate_video(
     video: Path, lang: str, who_name: str, args, net, manifest, opening, model, labels_idx
 ) -> tuple[dict, list[dict]]:
@@ -127,42 +164,48 @@ def evaluate_video(
     opening_windows = load_sample(video, args.cache, kind, progress=False).windows
     seq = s.tracked
     fps, n = seq.fps, seq.num_frames
-    split = int(round(n * TRAIN_FRACTION))
+    parts = fold_parts(n, args.folds)
+    held = np.zeros(n, bool)
+    for _, te in parts:
+        held[te] = True
     valid = seq.valid
-    tr = np.flatnonzero(valid[:split])
-    te = np.arange(split, n)
-    ok = valid[te]
+    fitting = np.zeros(n, bool)  # the frames whose real gap sets the closed levels
+    fitting[parts[0][0] if args.folds == 1 else np.arange(n)] = True
+    tr = np.flatnonzero(valid & fitting)
+    ok = valid & held
     audio = read_audio(video, SR)
 
     gap_all = model.inner_lip_gap(seq.identity, seq.expression)
     closed, rest_lvl = closed_level(gap_all[tr]), closed_level(gap_all[tr], 0.3)
     lead = int(round(BILABIAL_LEAD_S * fps))
-    gap_real = np.where(ok, gap_all[te], np.nan)
+    gap_real = np.where(ok, gap_all, np.nan)
 
     # truth from the clean audio: what is said (bilabials) and where the pauses are
     post = extract_features(audio, SR, kind="phonemes")
-    bil = bilabial_frames(post.values, labels_idx, post.rate, fps, n)[te] & ok
+    bil = bilabial_frames(post.values, labels_idx, post.rate, fps, n) & ok
     voiced = frame_speech_probability(audio, SR, fps, n) >= 0.5
-    # the person's style from the first 80 %, as nvp fit makes it
-    fit_part = VideoSample(name, s.windows[:split], seq.head(split), opening_windows=opening_windows[:split])
-    style = style_from_sample(
-        net,
-        manifest,
-        fit_part,
-        model,
-        voiced=voiced[:split],
-        max_gain=args.range_gain_max,
-        opening=opening,
-        opening_weight=args.opening_weight,
-        pause_timing_min_frames=args.pause_timing_min_frames,
-    )
-    rest_gap = float(model.inner_lip_gap(seq.identity, style.rest_expression[None])[0])
+    # each fold's style from its fitting frames, as nvp fit makes it from footage
+    styles, rest_gap = [], np.zeros(n)
+    for fit, te in parts:
+        fit_part = VideoSample(name, s.windows[fit], seq.frames(fit), opening_windows=opening_windows[fit])
+        style = style_from_sample(
+            net,
+            manifest,
+            fit_part,
+            model,
+            voiced=voiced[fit],
+            max_gain=args.range_gain_max,
+            opening=opening,
+            opening_weight=args.opening_weight,
+            pause_timing_min_frames=args.pause_timing_min_frames,
+        )
+        styles.append(style)
+        rest_gap[te] = float(model.inner_lip_gap(seq.identity, style.rest_expression[None])[0])
     rest_tol = 0.05 * float(np.nanpercentile(gap_all[tr], 95))
-    pauses, speech = pause_mask(voiced, fps, 0.3)[te] & ok, voiced[te] & ok
+    pauses, speech = pause_mask(voiced, fps, 0.3) & ok, voiced & ok
 
     def resting(gap: np.ndarray) -> int:
-        g = gap[pauses]
-        return int(np.sum((g <= rest_lvl) | (np.abs(g - rest_gap) <= rest_tol)))
+        return int(np.sum(((gap <= rest_lvl) | (np.abs(gap - rest_gap) <= rest_tol))[pauses]))
 
     real = {
         "video": name,
@@ -180,7 +223,7 @@ def evaluate_video(
     }
 
     rows = []
-    start = int(round(split / fps * SR))
+    start = int(round(parts[0][1][0] / fps * SR)) if args.folds == 1 else 0  # noise over what is predicted
     seed = int(hashlib.sha256(name.encode()).hexdigest()[:8], 16)
     for cond, snr in CONDITIONS.items():
         x, windows, ow = audio, s.windows, opening_windows
@@ -192,12 +235,15 @@ def evaluate_video(
             windows = frame_windows(feats, fps, num_frames=n).astype(np.float32)
             ow = frame_windows(of, fps, num_frames=n).astype(np.float32)
         voice = voice_activity(x, SR, fps, n)
-        pred = style_expressions(style, net, windows, voice, args.closure_ramp, (ow, fps), opening)[te]
-        gap = model.inner_lip_gap(seq.identity, pred)
+        gap = np.full(n, np.nan)
+        for style, (_, te) in zip(styles, parts, strict=True):
+            pred = style_expressions(style, net, windows, voice, args.closure_ramp, (ow, fps), opening)
+            gap[te] = model.inner_lip_gap(seq.identity, pred[te])
         varies = gap[ok].std() > 1e-9 and gap_real[ok].std() > 1e-9
         rate = bilabial_closure_rate(gap, bil, closed, lead) if bil.any() else float("nan")
         pb = pause_behaviour(np.where(ok, gap, np.nan), pauses, speech, rest_lvl)
         d2 = np.abs(np.diff(gap_real[ok], 2)).mean()
+        lag, corr_at_lag = synced(np.where(ok, gap, np.nan), gap_real, varies)
         rows.append(
             {
                 "video": name,
@@ -208,7 +254,8 @@ def evaluate_video(
                 "opening_corr": float(np.corrcoef(gap[ok], gap_real[ok])[0, 1]) if varies else 0.0,
                 "opening_range_ratio": opening_range_ratio(gap[ok], gap_real[ok]),
                 "jitter_ratio": float(np.abs(np.diff(gap[ok], 2)).mean() / d2) if d2 > 0 else float("nan"),
-                "av_offset": av_offset(np.where(ok, gap, np.nan), gap_real)[0] if varies else 0,
+                "av_offset": lag,
+                "opening_corr_synced": corr_at_lag,
                 "bilabial_closed": int(round(rate * bil.sum())) if bil.any() else 0,
                 "pause_closed": int(np.sum(gap[pauses] <= rest_lvl)),
                 "pause_resting": resting(gap),
@@ -257,6 +304,7 @@ def summarise(reals: list[dict], rows: list[dict], key) -> list[dict]:
                 "bilabial closed (real)": f"{_f(b_out)} ({_f(b_real)})",
                 "bilabial ratio": _f(b_out / b_real if b_real else float("nan"), 2),
                 "opening corr": _f(np.mean([r["opening_corr"] for r in sel])),
+                "synced corr": _f(np.mean([r["opening_corr_synced"] for r in sel])),
                 "opening range": _f(np.nanmean([r["opening_range_ratio"] for r in sel]), 2),
                 "jitter ratio": _f(np.nanmean([r["jitter_ratio"] for r in sel]), 2),
                 "AV offset (median)": f"{np.median([r['av_offset'] for r in sel]):+.0f}",
@@ -278,6 +326,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=Path("out/eval_lipsync"))
     ap.add_argument("--videos", nargs="*", help="only these clips of the set")
     ap.add_argument("--joined", action="store_true", help="each person's clips joined into one footage")
+    ap.add_argument(
+        "--folds",
+        type=int,
+        default=5,
+        help="consecutive parts of each clip, each predicted from a style made on the others (1: the first "
+        "80 %% makes the style, the last 20 %% is predicted)",
+    )
     ap.add_argument(
         "--closure-ramp",
         type=float,
@@ -358,8 +413,13 @@ def main(argv: list[str] | None = None) -> int:
         f"## Lip sync on the {args.set} split: {len(names)} videos, {people} people, "
         f"{sum(r['test_frames'] for r in reals)} held-out frames\n\n"
         "Network: " + args.net.name + f" (sha256 {manifest['sha256'][:12]}); opening model "
-        f"{args.opening.name} at weight {args.opening_weight}. Person map on the first 80 %, "
-        "last 20 % predicted. Rates in parentheses: the real video's (the target).\n\n"
+        f"{args.opening.name} at weight {args.opening_weight}. "
+        + (
+            "Person map on the first 80 %, last 20 % predicted. "
+            if args.folds == 1
+            else f"{args.folds} folds: each part predicted from a style made on the others. "
+        )
+        + "Rates in parentheses: the real video's (the target).\n\n"
         + markdown_table(overall, cols)
         + "\n### Per language (clean audio)\n\n"
         + markdown_table(per_lang, cols)
