@@ -73,3 +73,28 @@ def test_track_demo_clip_end_to_end(demo_clip, tmp_path):
 def test_help_lists_commands():
     proc = subprocess.run([sys.executable, "-m", "nvp.app.cli", "--help"], capture_output=True, text=True)
     assert proc.returncode == 0 and "track" in proc.stdout
+
+
+def test_option_defaults_are_the_functions_own():
+    """Where a default cannot come from a light config dataclass (the module imports torch, and building
+    the parser must not), the parser's copy equals the one the work uses."""
+    import inspect
+
+    from nvp.app.cli import build_parser
+    from nvp.app.demo import run_demo
+    from nvp.app.pretrain_renderer import pretrain_renderer
+    from nvp.app.train_audio2exp import Audio2ExpTrainConfig
+
+    parse = build_parser().parse_args
+    a2e = parse(["train-audio2exp", "corpus", "-o", "out"])
+    cfg = Audio2ExpTrainConfig()
+    assert (a2e.steps, a2e.val_every, a2e.seed, a2e.closure_weight, a2e.features) == (
+        cfg.steps,
+        cfg.val_every,
+        cfg.seed,
+        cfg.closure_weight,
+        cfg.kind,
+    )
+    budget = inspect.signature(pretrain_renderer).parameters["budget_minutes"].default
+    assert parse(["pretrain-renderer", "corpus", "-o", "out"]).budget_minutes == budget
+    assert parse(["demo"]).budget_minutes == inspect.signature(run_demo).parameters["budget_minutes"].default

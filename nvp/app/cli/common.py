@@ -3,7 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import sys
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TypeVar
+
+T = TypeVar("T")
 
 
 def add_device_arg(p: argparse.ArgumentParser) -> None:
@@ -81,3 +86,23 @@ def nanmedian(x) -> float:
     import numpy as np
 
     return float(np.nanmedian(x)) if np.isfinite(x).any() else float("nan")
+
+
+def run_each(
+    inputs: Sequence[T], work: Callable[[int, T], None], failure: Callable[[T, Exception], str]
+) -> int:
+    """``work(i, input)`` for each of ``inputs`` (dub and eval of several files); returns how many failed.
+    With one input its error goes up (``main()`` prints it as the one error line); with several, each
+    failure is the one line ``failure(input, error)`` on stderr and the other inputs still run."""
+    from nvp.errors import NvpError
+
+    failed = 0
+    for i, item in enumerate(inputs):
+        try:
+            work(i, item)
+        except NvpError as e:
+            if len(inputs) == 1:
+                raise  # main() prints it as the one error line
+            print(failure(item, e), file=sys.stderr)  # the others still run
+            failed += 1
+    return failed

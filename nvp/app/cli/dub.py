@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
-from nvp.app.cli.common import add_device_arg, add_style_arg, device
+from nvp.app.cli.common import add_device_arg, add_style_arg, device, run_each
 
 
 def add_parser(sub) -> None:
@@ -82,25 +81,18 @@ def run(args: argparse.Namespace) -> int:
     for audio in audios:  # before any work: no output over an input, none inside a person bundle
         out = Path(args.output) / f"{audio.stem}.mp4" if several else Path(args.output)
         check_output_place(out, (*audios, args.list, args.person, args.style))
-    failed = 0
-    for i, audio in enumerate(audios):
+
+    def dub_one(i: int, audio: Path) -> None:
         out = Path(args.output) / f"{audio.stem}.mp4" if several else Path(args.output)
-        try:
-            r = dub(
-                audio,
-                args.person,
-                out,
-                device=device(args.device),
-                progress=not args.quiet,
-                style=args.style,
-                transcript=transcript,
-            )
-        except NvpError as e:
-            if not several:
-                raise  # main() prints it as the one error line
-            print(f"nvp dub: {audio}: error: {e}", file=sys.stderr)  # the other files still run
-            failed += 1
-            continue
+        r = dub(
+            audio,
+            args.person,
+            out,
+            device=device(args.device),
+            progress=not args.quiet,
+            style=args.style,
+            transcript=transcript,
+        )
         print(
             (f"[{i + 1}/{len(audios)}] " if several else "")
             + f"{r.frames} frames ({r.frames / r.fps:.2f} s for {r.audio_seconds:.2f} s of audio) in "
@@ -108,6 +100,8 @@ def run(args: argparse.Namespace) -> int:
             + ("" if r.rendered == r.frames else f"; resumed, {r.rendered} rendered now")
             + f") → {r.output}"
         )
+
+    failed = run_each(audios, dub_one, lambda audio, e: f"nvp dub: {audio}: error: {e}")
     if several:
         print(
             f"{len(audios) - failed} of {len(audios)} dubbed → {args.output}"

@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
-from nvp.app.cli.common import add_device_arg, add_renderer_training_args, device
+from nvp.app.cli.common import add_device_arg, add_renderer_training_args, device, run_each
 
 SUMMARY_METRICS = (
     "psnr_full",
@@ -43,7 +42,6 @@ def add_parser(sub) -> None:
 def run(args: argparse.Namespace) -> int:
     from nvp.app.evaluate import EvalConfig, evaluate_video
     from nvp.app.report import write_results
-    from nvp.errors import NvpError
 
     cfg = EvalConfig(
         train_fraction=args.train_fraction,
@@ -59,17 +57,11 @@ def run(args: argparse.Namespace) -> int:
         root = Path(args.output)
     else:
         root = Path("nvp-eval") if several else Path(args.video[0]).with_suffix("") / "nvp-eval"
-    rows, failed = [], 0
-    for video in args.video:
+    rows = []
+
+    def evaluate_one(_: int, video: Path) -> None:
         out = root / Path(video).stem if several else root
-        try:
-            r = evaluate_video(video, out, cfg, progress=not args.quiet)
-        except NvpError as e:
-            if not several:
-                raise  # main() prints it as the one error line
-            print(f"nvp eval: {video}: {e}", file=sys.stderr)  # the other videos still run
-            failed += 1
-            continue
+        r = evaluate_video(video, out, cfg, progress=not args.quiet)
         print((out / "eval.md").read_text())
         print(f"eval.json, eval.md, eval.png → {out} ({r['frames']['test']} held-out frames)")
         for kind in ("visual", "audio"):
@@ -82,6 +74,8 @@ def run(args: argparse.Namespace) -> int:
                     **{k: r[kind][k] for k in SUMMARY_METRICS if k in r[kind]},
                 }
             )
+
+    failed = run_each(args.video, evaluate_one, lambda video, e: f"nvp eval: {video}: {e}")
     if several and rows:
         print(write_results(rows, root))
     return 2 if failed else 0
