@@ -50,7 +50,7 @@ from pathlib import Path
 from urllib.parse import parse_qs, urlsplit
 
 from nvp.app.serve_app import App
-from nvp.app.serve_limits import Limits, body_length, check_free_disk, media_type
+from nvp.app.serve_limits import LimitedServer, Limits, body_length, check_free_disk, media_type
 from nvp.app.serve_security import (
     MIN_TOKEN_CHARS,
     TOKEN_ENV,
@@ -405,42 +405,6 @@ class Handler(BaseHTTPRequestHandler):
         self._file(out, "video/mp4")
 
 
-class _Server(ThreadingHTTPServer):
-    """Threads per connection, at most ``max_connections`` at once (more are answered 503 and closed)."""
-
-    daemon_threads = True
-
-    def __init__(self, address, handler, max_connections: int) -> None:
-        self._slots = threading.BoundedSemaphore(max_connections)
-        super().__init__(address, handler)
-
-    def process_request(self, request, client_address) -> None:
-        if not self._slots.acquire(blocking=False):
-            body = json.dumps({"error": "the server is busy; try again"}).encode()
-            head = (
-                "HTTP/1.0 503 Service Unavailable\r\nContent-Type: application/json\r\n"
-                f"Content-Length: {len(body)}\r\nRetry-After: 1\r\nConnection: close\r\n\r\n"
-            )
-            try:
-                request.settimeout(1.0)
-                request.sendall(head.encode() + body)
-            except OSError:
-                pass
-            self.shutdown_request(request)
-            return
-        try:
-            super().process_request(request, client_address)
-        except BaseException:
-            self._slots.release()
-            raise
-
-    def process_request_thread(self, request, client_address) -> None:
-        try:
-            super().process_request_thread(request, client_address)
-        finally:
-            self._slots.release()
-
-
 def make_server(app: App, host: str = "127.0.0.1", port: int = DEFAULT_PORT) -> ThreadingHTTPServer:
     """The HTTP server for ``app`` (not started); ``port`` 0 picks a free one. ``server.guard`` holds the
     checks (and the token)."""
@@ -448,9 +412,9 @@ def make_server(app: App, host: str = "127.0.0.1", port: int = DEFAULT_PORT) -> 
     handler = type(
         "NvpHandler", (Handler,), {"app": app, "guard": guard, "timeout": app.limits.request_timeout_s}
     )
-    server_class = _Server
+    server_class = LimitedServer
     if ":" in host.strip("[]"):
-        server_class = type("_Server6", (_Server,), {"address_family": socket.AF_INET6})
+        server_class = type("LimitedServer6", (LimitedServer,), {"address_family": socket.AF_INET6})
     try:
         server = server_class((host.strip("[]"), port), handler, app.limits.max_connections)
     except OSError as e:

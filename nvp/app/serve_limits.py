@@ -1,4 +1,5 @@
-"""What ``nvp serve`` accepts: media types, container formats, sizes, durations, queue length and disk use.
+"""What ``nvp serve`` accepts: media types, container formats, sizes, durations, queue length, disk use
+and connections at once (:class:`LimitedServer`).
 
 Uploads are opened here, before any job sees them, with FFmpeg limited to the container formats nvp
 supports (``format_whitelist``) and to plain files (``protocol_whitelist=file``): a playlist (HLS, concat,
@@ -9,10 +10,13 @@ container there (it depends only on the bytes, and uploads are stored under name
 
 from __future__ import annotations
 
+import json
 import shutil
+import threading
 from dataclasses import dataclass
 from email.message import Message
 from http import HTTPStatus
+from http.server import ThreadingHTTPServer
 from pathlib import Path
 
 from nvp.app.serve_security import ApiError
@@ -189,3 +193,40 @@ def _duration(container) -> float | None:
         return container.duration / 1_000_000
     found = [float(s.duration * s.time_base) for s in container.streams if s.duration and s.time_base]
     return max(found) if found else None
+
+
+class LimitedServer(ThreadingHTTPServer):
+    """The HTTP server of ``nvp serve``: threads per connection, at most ``max_connections`` at once (more
+    are answered 503 and closed)."""
+
+    daemon_threads = True
+
+    def __init__(self, address, handler, max_connections: int) -> None:
+        self._slots = threading.BoundedSemaphore(max_connections)
+        super().__init__(address, handler)
+
+    def process_request(self, request, client_address) -> None:
+        if not self._slots.acquire(blocking=False):
+            body = json.dumps({"error": "the server is busy; try again"}).encode()
+            head = (
+                "HTTP/1.0 503 Service Unavailable\r\nContent-Type: application/json\r\n"
+                f"Content-Length: {len(body)}\r\nRetry-After: 1\r\nConnection: close\r\n\r\n"
+            )
+            try:
+                request.settimeout(1.0)
+                request.sendall(head.encode() + body)
+            except OSError:
+                pass
+            self.shutdown_request(request)
+            return
+        try:
+            super().process_request(request, client_address)
+        except BaseException:
+            self._slots.release()
+            raise
+
+    def process_request_thread(self, request, client_address) -> None:
+        try:
+            super().process_request_thread(request, client_address)
+        finally:
+            self._slots.release()
