@@ -48,6 +48,18 @@ def add_renderer_training_args(p: argparse.ArgumentParser, budget_minutes: float
     )
 
 
+def renderer_training_options(args: argparse.Namespace) -> dict:
+    """What :func:`add_renderer_training_args` (and ``--device``) parsed, as the keywords of ``FitConfig``
+    and ``EvalConfig``."""
+    return {
+        "preset": args.preset,
+        "budget_minutes": args.budget_minutes,
+        "steps": args.steps,
+        "device": device(args.device),
+        "renderer_init": args.init,
+    }
+
+
 def add_preset_arg(p: argparse.ArgumentParser) -> None:
     from nvp.app.fit import FitConfig
 

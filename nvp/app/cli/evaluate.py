@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from nvp.app.cli.common import add_device_arg, add_renderer_training_args, device, run_each
+from nvp.app.cli.common import add_device_arg, add_renderer_training_args, renderer_training_options, run_each
 
 SUMMARY_METRICS = (
     "psnr_full",
@@ -45,12 +45,8 @@ def run(args: argparse.Namespace) -> int:
 
     cfg = EvalConfig(
         train_fraction=args.train_fraction,
-        preset=args.preset,
-        budget_minutes=args.budget_minutes,
-        steps=args.steps,
         side_by_side=args.side_by_side,
-        device=device(args.device),
-        renderer_init=args.init,
+        **renderer_training_options(args),
     )
     several = len(args.video) > 1
     if args.output:

@@ -5,7 +5,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from nvp.app.cli.common import add_device_arg, add_features_arg, add_renderer_training_args, device
+from nvp.app.cli.common import (
+    add_device_arg,
+    add_features_arg,
+    add_renderer_training_args,
+    renderer_training_options,
+)
 
 
 def add_parser(sub) -> None:
@@ -26,13 +31,9 @@ def run(args: argparse.Namespace) -> int:
     from nvp.app.fit import FitConfig, fit
 
     cfg = FitConfig(
-        preset=args.preset,
-        budget_minutes=args.budget_minutes,
-        steps=args.steps,
+        **renderer_training_options(args),
         features=args.features,
-        device=device(args.device),
         vgg_weights=str(args.vgg_weights) if args.vgg_weights else None,
-        renderer_init=args.init,
     )
     bundle = fit(args.video, args.output, cfg, progress=not args.quiet, force=args.force)
     st = bundle.manifest["stages"]
