@@ -440,11 +440,13 @@ def serve(
     max_upload_mb: float = Limits.max_upload_mb,
     token: str | None = None,
     limits: Limits | None = None,
+    cluster: str | None = None,
 ) -> None:
     """Run the web app until interrupted (Ctrl-C or SIGTERM: the running job is stopped and queued again).
 
     ``token``: the API token; default ``$NVP_SERVE_TOKEN``, else a new one per launch. A ``host`` other
-    than loopback needs an explicit one (the page then asks for it instead of carrying it).
+    than loopback needs an explicit one (the page then asks for it instead of carrying it). ``cluster``: a
+    cluster head's address (:mod:`nvp.app.cluster`): its workers run the jobs instead of this process.
 
     Raises:
         NvpError: another server uses ``data``; a non-loopback host without a token; a token too short;
@@ -458,7 +460,7 @@ def serve(
             f"--host {host} can be reached from other machines: set {TOKEN_ENV} to a secret of at least "
             f"{MIN_TOKEN_CHARS} characters first (the page asks for it; the traffic is plain HTTP)"
         )
-    app = App(data, limits or Limits(max_upload_mb=max_upload_mb), token=token)
+    app = App(data, limits or Limits(max_upload_mb=max_upload_mb), token=token, cluster=cluster)
     server = None
     try:
         server = make_server(app, host, port)
@@ -475,6 +477,8 @@ def serve(
                 f"warning: listening on {host}: other machines can reach this server over plain HTTP (not "
                 "encrypted); every API call needs the token, and the page asks for it"
             )
+        if cluster:
+            say(f"jobs run on the workers of the cluster at {cluster}; they must see {app.data} there")
         if app.requeued:
             say(f"{len(app.requeued)} interrupted job(s) queued again")
         _sigterm_as_interrupt()

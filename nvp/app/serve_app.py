@@ -27,10 +27,17 @@ _CONTROL = re.compile(r"[\x00-\x08\x0b-\x1f\x7f]")
 class App:
     """The data folder (locked: one server per folder), the job store and the worker behind the handler.
 
-    ``token``: the API token (None: a new random one). ``close()`` releases everything."""
+    ``token``: the API token (None: a new random one); ``cluster``: a cluster head's address, whose
+    workers then run the jobs (:class:`nvp.app.cluster.ClusterWorker`; the data folder must be shared with
+    them, at the same path). ``close()`` releases everything."""
 
     def __init__(
-        self, data: Path, limits: Limits | None = None, extra_fit_args: tuple = (), token: str | None = None
+        self,
+        data: Path,
+        limits: Limits | None = None,
+        extra_fit_args: tuple = (),
+        token: str | None = None,
+        cluster: str | None = None,
     ) -> None:
         self.data = data.resolve()
         self.data.mkdir(parents=True, exist_ok=True)
@@ -46,7 +53,12 @@ class App:
             self._names_path = self.data / "people.json"
             self._lock = threading.Lock()
             self._marks: dict[str, str] = {}
-            self.worker = Worker(self.store, self.data, on_done=self._ended)
+            if cluster:
+                from nvp.app.cluster import ClusterWorker
+
+                self.worker = ClusterWorker(self.store, self.data, cluster, on_done=self._ended)
+            else:
+                self.worker = Worker(self.store, self.data, on_done=self._ended)
             self.requeued = self.worker.recover()
             self._sweep_uploads()
             write_token_file(self.data, self.token)

@@ -13,6 +13,7 @@ import sys
 
 from nvp import __version__
 from nvp.app.cli import (
+    cluster,
     demo,
     dub,
     evaluate,
@@ -42,6 +43,7 @@ COMMANDS = (
     say.add_parser,
     live.add_parser,
     serve.add_parser,
+    cluster.add_parser,
     info.add_info,
     info.add_verify,
     evaluate.add_parser,

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from nvp.app.cli.common import add_device_arg, add_style_arg, device, run_each
+from nvp.app.cluster import add_cluster_arg
 
 
 def add_parser(sub) -> None:
@@ -33,6 +34,7 @@ def add_parser(sub) -> None:
     )
     add_style_arg(p)
     add_device_arg(p)
+    add_cluster_arg(p)
     p.set_defaults(func=run)
 
 
@@ -53,7 +55,20 @@ def _audio_files(args: argparse.Namespace) -> list[Path]:
     return audios
 
 
+def _on_cluster(args: argparse.Namespace, audios: list[Path], address: str) -> int:
+    from nvp.app.cluster import absolute, run_inputs
+
+    def argv_of(audio: Path) -> list[str]:
+        argv = ["dub", absolute(audio), "--person", absolute(args.person), "--device", args.device]
+        argv += ["-o", absolute(Path(args.output) / f"{audio.stem}.mp4")]
+        return argv + (["--style", absolute(args.style)] if args.style else [])
+
+    code, _ = run_inputs("dub", audios, argv_of, address, args.output, "dubbed", progress=not args.quiet)
+    return code
+
+
 def run(args: argparse.Namespace) -> int:
+    from nvp.app.cluster import head_address
     from nvp.app.dub import dub
     from nvp.errors import NvpError
 
@@ -81,6 +96,8 @@ def run(args: argparse.Namespace) -> int:
     for audio in audios:  # before any work: no output over an input, none inside a person bundle
         out = Path(args.output) / f"{audio.stem}.mp4" if several else Path(args.output)
         check_output_place(out, (*audios, args.list, args.person, args.style))
+    if several and head_address(args.cluster):  # one job per file on the cluster's workers
+        return _on_cluster(args, audios, head_address(args.cluster))
 
     def dub_one(i: int, audio: Path) -> None:
         out = Path(args.output) / f"{audio.stem}.mp4" if several else Path(args.output)

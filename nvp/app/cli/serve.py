@@ -14,11 +14,18 @@ def add_parser(sub) -> None:
         "--data", type=Path, default=Path("nvp-data"), help="folder for people, uploads, dubs, jobs"
     )
     p.add_argument("--max-upload-mb", type=float, default=1024, help="largest upload accepted")
+    p.add_argument(
+        "--cluster",
+        metavar="HEAD",
+        help="run the jobs on this nvp cluster's workers (HOST[:PORT]; default $NVP_CLUSTER; they must see "
+        "--data at the same path); needs the cluster extra",
+    )
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    from nvp.app.cluster import head_address
     from nvp.app.serve import serve
 
-    serve(Path(args.data), args.host, args.port, args.max_upload_mb)
+    serve(Path(args.data), args.host, args.port, args.max_upload_mb, cluster=head_address(args.cluster))
     return 0
