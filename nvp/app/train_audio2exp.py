@@ -411,3 +411,43 @@ def train(
             group.barrier()
     bar.close()
     return {"log": log_rows, "best_mouth_error_iod": best}
+
+
+def train_on_corpus(
+    corpus: Path,
+    output: Path,
+    cfg: Audio2ExpTrainConfig,
+    val: list[str] | None = None,
+    exclude: list[str] | None = None,
+    cache: Path | None = None,
+    progress: bool = True,
+) -> dict | None:
+    """``nvp train-audio2exp``: train on the videos of the folder ``corpus`` (``val``: validation file names,
+    default 5 spread over the list; ``exclude``: left out) into ``output``; tracking and features are
+    cached in ``cache`` (default ``output/cache``), the noisy copies of ``cfg.noise_snrs`` too. Under
+    torchrun every process calls it and the main process tracks the corpus into the cache first. Returns
+    :func:`train`'s result in the main process, None in the others."""
+    from nvp.app.corpus import corpus_split
+    from nvp.app.distributed import process_group
+    from nvp.face_model import default_face_model
+
+    group = process_group()  # one process, or one of torchrun's
+    cache = Path(cache) if cache else Path(output) / "cache"
+    if not group.main:
+        group.barrier()  # the main process tracks the corpus into the cache first
+    train_set, val_set, split = corpus_split(
+        Path(corpus), val, exclude, cache, cfg.kind, progress and group.main, cfg.noise_snrs
+    )
+    if group.main:
+        group.barrier()
+    frames = {"train_frames": int(sum(s.valid.sum() for s in train_set))}
+    result = train(
+        train_set,
+        val_set,
+        default_face_model(),
+        cfg,
+        Path(output),
+        progress=progress,
+        provenance={"split": split, **frames, "corpus": str(corpus), "processes": group.world},
+    )
+    return result if group.main else None

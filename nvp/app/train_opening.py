@@ -73,3 +73,33 @@ def train_opening(
     }
     manifest = OpeningModel(m.weight, m.bias, m.window_step, info=summary, feature_kind=kind).save(out)
     return OpeningModel.load(manifest), summary
+
+
+def train_opening_on_corpus(
+    corpus: Path,
+    output: Path,
+    val: list[str] | None = None,
+    exclude: list[str] | None = None,
+    cache: Path | None = None,
+    kind: str | None = None,
+    progress: bool = True,
+) -> tuple[dict, int]:
+    """``nvp train-opening``: the opening model of feature ``kind`` (default: the shipped model's) fitted on
+    the videos of the folder ``corpus`` (``val`` / ``exclude`` as :func:`nvp.app.corpus.corpus_split`
+    takes them; tracking and features cached in ``cache``, default ``cache`` beside ``output``) and saved
+    at ``output``. Returns :func:`train_opening`'s summary and the number of validation videos."""
+    from nvp.app.corpus import corpus_split
+    from nvp.face_model import default_face_model
+
+    kind = kind or FEATURE_KIND
+    cache = Path(cache) if cache else Path(output).parent / "cache"
+    train_set, val_set, split = corpus_split(Path(corpus), val, exclude, cache, kind, progress)
+    _, summary = train_opening(
+        train_set,
+        val_set,
+        default_face_model(),
+        Path(output),
+        provenance={"split": split, "corpus": str(corpus)},
+        kind=kind,
+    )
+    return summary, len(val_set)

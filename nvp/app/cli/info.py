@@ -13,27 +13,10 @@ def add_info(sub) -> None:
 
 
 def run_info(args: argparse.Namespace) -> int:
-    from nvp.bundle import PersonBundle
-    from nvp.person import PersonStyle
+    from nvp.app.info import bundle_summary
 
-    b = PersonBundle.load(args.person, verify=False)
-    checked = b.check()  # every file the bundle lists, at the size and sha256 the fit wrote
-    m = b.manifest
-    t = m["target"]
-    print(f"person bundle {b.root} (format {m['format']} v{m['version']}, made by nvp {m['nvp_version']})")
-    print(
-        f"  target: {Path(t['source']).name}, {t['width']}x{t['height']}, {t['fps']:.3f} fps, "
-        f"{t['frames']} frames ({t['duration_s']:.1f} s)"
-    )
-    print(f"  speech features: {m['feature_kind']}; renderer preset: {m['preset']}")
-    style = PersonStyle.load(b.path("style"))
-    opening = style.info.get("opening", "none (fitted before nvp's opening model)")
-    opening = "calibrated" if style.opening else opening
-    print(f"  talking style: rest mouth from {style.info.get('rest', '?')}; mouth-opening model: {opening}")
-    for name, facts in m["stages"].items():
-        extra = ", ".join(f"{k} {v}" for k, v in facts.items() if k != "seconds")
-        print(f"  {name}: {facts.get('seconds', 0):.1f} s" + (f" ({extra})" if extra else ""))
-    print(f"  files: {checked} checked, each at the size and sha256 the fit wrote")
+    for line in bundle_summary(args.person):
+        print(line)
     return 0
 
 

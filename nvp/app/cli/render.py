@@ -21,33 +21,17 @@ def add_parser(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import numpy as np
+    from nvp.app.render import rerender
 
-    from nvp.artifact import check_output_file
-    from nvp.face_model import default_face_model
-    from nvp.media import VideoWriter, audio_rate, has_audio, iter_frames, read_audio
-    from nvp.provenance import synthetic_mark
-    from nvp.tracked import TrackedSequence
-    from renderer.loop import render_frames
-    from renderer.render import FrameRenderer
-
-    check_output_file(args.output, inputs=(args.video,))
-    seq = TrackedSequence.load(args.track_dir)
-    start = args.start_frame
-    n = seq.num_frames - start if args.frames is None else min(args.frames, seq.num_frames - start)
-    audio, rate = None, 48000
-    if has_audio(args.video):
-        rate = audio_rate(args.video)
-        audio = read_audio(args.video, None, mono=False)[int(start / seq.fps * rate) :]
-    tags = synthetic_mark("render", renderer=str(args.renderer_dir))
-    with (
-        FrameRenderer(args.renderer_dir, default_face_model(), seq, device(args.device)) as fr,
-        VideoWriter(args.output, seq.fps, seq.width, seq.height, audio, rate, metadata=tags) as vw,
-    ):
-        frames = iter_frames(args.video, seq.fps, start, n)
-        for _, made in render_frames(
-            fr, frames, np.arange(start, start + n), {"render": None}, not args.quiet
-        ):
-            vw.write(made["render"])
+    n = rerender(
+        args.track_dir,
+        args.renderer_dir,
+        args.video,
+        args.output,
+        args.start_frame,
+        args.frames,
+        device(args.device),
+        not args.quiet,
+    )
     print(f"rendered {n} frames → {args.output}")
     return 0

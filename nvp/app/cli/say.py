@@ -31,13 +31,7 @@ def add_parser(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import tempfile
-
-    import soundfile as sf
-
-    from nvp.app.dub import dub
-    from nvp.artifact import check_output_file
-    from nvp.tts import have_piper, installed_voices, synthesize
+    from nvp.tts import installed_voices
 
     if args.list_voices:
         voices = installed_voices()
@@ -50,35 +44,20 @@ def run(args: argparse.Namespace) -> int:
         from nvp.errors import NvpError
 
         raise NvpError("give the text, --person and -o (or --list-voices)")
-    check_output_file(args.output)
-    if args.wav is not None:
-        check_output_file(args.wav)
-    from nvp.bundle import check_output_place
-    from nvp.errors import NvpError
+    from nvp.app.say import say
 
-    for out in (args.output, args.wav):  # never over an input, nor inside a person bundle
-        if out is not None:
-            check_output_place(out, (args.person, args.style))
-    if args.wav is not None and Path(args.wav).resolve() == Path(args.output).resolve():
-        raise NvpError(f"-o and --wav both name {args.output}; give the speech another name")
-    speech = synthesize(args.text, length_scale=args.slower, voice=args.voice, engine=args.engine)
-    with tempfile.TemporaryDirectory() as tmp:
-        wav = Path(tmp) / "speech.wav"
-        sf.write(wav, speech.audio, speech.rate)
-        r = dub(
-            wav,
-            args.person,
-            args.output,
-            device=device(args.device),
-            progress=not args.quiet,
-            style=args.style,
-            details={"speech": f"text to speech ({speech.engine}, voice {speech.voice})"},
-            transcript=(args.text, speech.language) if have_piper() else None,  # its phonemizer aligns
-        )
-        if args.wav is not None:
-            import shutil
-
-            shutil.copyfile(wav, args.wav)
+    speech, r = say(
+        args.text,
+        args.person,
+        args.output,
+        args.wav,
+        args.voice,
+        args.engine,
+        args.slower,
+        device(args.device),
+        not args.quiet,
+        args.style,
+    )
     print(
         f"{speech.seconds:.1f} s of speech ({speech.engine}, voice {speech.voice}), {r.frames} frames in "
         f"{r.seconds:.1f} s → {r.output}" + (f"; speech → {args.wav}" if args.wav else "")

@@ -45,40 +45,20 @@ def add_train_audio2exp(sub) -> None:
 
 
 def run_train_audio2exp(args: argparse.Namespace) -> int:
-    from nvp.app.corpus import corpus_split
-    from nvp.app.distributed import process_group
-    from nvp.app.train_audio2exp import Audio2ExpTrainConfig, train
-    from nvp.face_model import default_face_model
+    from nvp.app.train_audio2exp import Audio2ExpTrainConfig, train_on_corpus
 
-    group = process_group()  # one process, or one of torchrun's
-    cache = Path(args.cache) if args.cache else Path(args.output) / "cache"
-    snrs = tuple(args.noise_snr or ())
-    if not group.main:
-        group.barrier()  # the main process tracks the corpus into the cache first
-    train_set, val_set, split = corpus_split(
-        Path(args.corpus), args.val, args.exclude, cache, args.features, not args.quiet and group.main, snrs
-    )
-    if group.main:
-        group.barrier()
     cfg = Audio2ExpTrainConfig(
         kind=args.features,
         steps=args.steps,
         seed=args.seed,
         val_every=args.val_every,
         closure_weight=args.closure_weight,
-        noise_snrs=snrs,
+        noise_snrs=tuple(args.noise_snr or ()),
     )
-    frames = {"train_frames": int(sum(s.valid.sum() for s in train_set))}
-    result = train(
-        train_set,
-        val_set,
-        default_face_model(),
-        cfg,
-        Path(args.output),
-        progress=not args.quiet,
-        provenance={"split": split, **frames, "corpus": str(args.corpus), "processes": group.world},
+    result = train_on_corpus(
+        args.corpus, args.output, cfg, args.val, args.exclude, args.cache, not args.quiet
     )
-    if not group.main:
+    if result is None:  # another process of torchrun's: the main one reports
         return 0
     print(
         f"best validation mouth error {result['best_mouth_error_iod']:.4f} IOD → "
@@ -109,28 +89,15 @@ def add_train_opening(sub) -> None:
 
 
 def run_train_opening(args: argparse.Namespace) -> int:
-    from nvp.app.corpus import corpus_split
-    from nvp.app.train_opening import train_opening
-    from nvp.face_model import default_face_model
-    from nvp.opening import FEATURE_KIND
+    from nvp.app.train_opening import train_opening_on_corpus
 
-    kind = args.features or FEATURE_KIND
-    cache = Path(args.cache) if args.cache else Path(args.output).parent / "cache"
-    train_set, val_set, split = corpus_split(
-        Path(args.corpus), args.val, args.exclude, cache, kind, not args.quiet
-    )
-    out = Path(args.output)
-    _, summary = train_opening(
-        train_set,
-        val_set,
-        default_face_model(),
-        out,
-        provenance={"split": split, "corpus": str(args.corpus)},
-        kind=kind,
+    summary, validation = train_opening_on_corpus(
+        args.corpus, args.output, args.val, args.exclude, args.cache, args.features, not args.quiet
     )
     print(
         f"ridge {summary['ridge']:g}: validation correlation {summary['validation_corr']:.3f} on "
-        f"{len(val_set)} videos, {summary['train_frames']} training frames → {out.with_suffix('.json')}"
+        f"{validation} videos, {summary['train_frames']} training frames → "
+        f"{Path(args.output).with_suffix('.json')}"
     )
     return 0
 
@@ -191,39 +158,21 @@ def add_train_renderer(sub) -> None:
 
 
 def run_train_renderer(args: argparse.Namespace) -> int:
-    import numpy as np
+    from nvp.app.train_renderer import train_renderer_on_video
 
-    from nvp.app.fit import renderer_init
-    from nvp.errors import NvpError
-    from nvp.face_model import default_face_model
-    from nvp.media import probe_video
-    from nvp.tracked import TrackedSequence
-    from renderer.preset import get_preset
-    from renderer.train import RendererTrainConfig, train_renderer
-    from renderer.train_data import build_cache
-
-    seq = TrackedSequence.load(args.track_dir)
-    info = probe_video(args.video)
-    if (info.width, info.height) != (seq.width, seq.height) or abs(info.num_frames - seq.num_frames) > 1:
-        raise NvpError(
-            f"{args.video} ({info.width}x{info.height}, {info.num_frames} frames) is not the video "
-            f"tracked in {args.track_dir} ({seq.width}x{seq.height}, {seq.num_frames} frames)"
-        )
-    preset = get_preset(args.preset)
-    split = int(round(seq.num_frames * args.train_fraction))
-    cache = build_cache(args.video, seq, default_face_model(), preset, np.arange(split), not args.quiet)
-    budget = None if args.budget_minutes is None else args.budget_minutes * 60
-    vgg = str(args.vgg_weights) if args.vgg_weights else None
-    cfg = RendererTrainConfig(
-        preset=args.preset,
-        steps=args.steps,
-        budget_s=budget,
-        seed=args.seed,
-        vgg_weights=vgg,
-        init=renderer_init(args.init),
-    )
-    result = train_renderer(
-        cache, cfg, Path(args.output), device=device(args.device), progress=not args.quiet
+    result = train_renderer_on_video(
+        args.track_dir,
+        args.video,
+        args.output,
+        args.preset,
+        args.steps,
+        args.budget_minutes,
+        args.seed,
+        args.vgg_weights,
+        args.init,
+        args.train_fraction,
+        device(args.device),
+        not args.quiet,
     )
     print(
         f"trained the {args.preset} renderer on {result['train_frames']} frames: {result['steps']} steps in "
