@@ -83,6 +83,11 @@ def main() -> None:
     finally:
         for p in procs:
             p.terminate()
+        for p in procs:
+            try:
+                p.wait(40)
+            except subprocess.TimeoutExpired:
+                p.kill()
     dubs = [found(o.stdout)[0] for o in outcomes if o.ok]
     jobs_s = [o.seconds for o in outcomes if o.ok]
     print(
