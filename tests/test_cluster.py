@@ -25,7 +25,8 @@ from nvp.errors import NvpError
 
 ENV = {**os.environ, "NVP_THREADS": "1"}
 """One thread per job: two workers share the 2 cores. (These 256² dubs encode identically run to run;
-``MALLOC_PERTURB_=165`` would make sure of it, docs/experiments/resume-encoding.md, but slows them 10×.)"""
+``MALLOC_PERTURB_=165`` would make sure of it, docs/experiments/resume-encoding.md, but slowed them several
+times here.)"""
 DEADLINE = 240.0
 
 
