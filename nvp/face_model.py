@@ -102,6 +102,13 @@ class FaceModel:
         v = self.vertices(id_coeffs)[[13, 14]] + d
         return np.linalg.norm(v[:, 0] - v[:, 1], axis=-1)
 
+    def mouth_width(self, id_coeffs: np.ndarray, exp_coeffs: np.ndarray) -> np.ndarray:
+        """``(T,)`` distance (cm) between the mouth corners (vertices 61 and 291) for ``(T, K_exp)``: it
+        narrows as the lips round."""
+        d = np.einsum("tk,kvc->tvc", exp_coeffs, self.exp_basis[:, [61, 291]])
+        v = self.vertices(id_coeffs)[[61, 291]] + d
+        return np.linalg.norm(v[:, 0] - v[:, 1], axis=-1)
+
     def mouth_weights(self, smoothing: int = 4) -> np.ndarray:
         """``(V,)`` weights in [0, 1]: 1 on the lips, mouth and jaw, 0 on the eyes and upper face, with a
         smooth transition (``smoothing`` rounds of averaging over mesh neighbours). Used to take the mouth

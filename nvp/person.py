@@ -9,6 +9,7 @@ mouth, its file format) is :mod:`nvp.person_style`; learning it from the person'
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Iterator
 from dataclasses import replace
 from typing import TYPE_CHECKING
 
@@ -43,6 +44,7 @@ from nvp.person_style import (
     VideoSample,
     transferred_style,
 )
+from nvp.rounding import rounded_share
 
 if TYPE_CHECKING:
     from nvp.audio_features import AudioFeatures
@@ -72,6 +74,7 @@ __all__ = [  # the style's data and learning live in nvp.person_style and nvp.pe
     "predict_expressions",
     "range_calibrated",
     "rest_expression",
+    "rounding_tap",
     "speech_features",
     "style_expressions",
     "style_from_sample",
@@ -106,11 +109,15 @@ def apply_style(
     opening: np.ndarray | None = None,
     text_closure: np.ndarray | None = None,
     fps: float | None = None,
+    rounded: np.ndarray | None = None,
 ) -> np.ndarray:
     """Expression coefficients ``(T, K_exp)`` of a person from the generic network's outputs.
 
     Audio-expressions ``(T, A)`` → person map; the opening model's standardised openings ``opening``
-    ``(T,)`` blend into the mouth opening (:class:`OpeningStyle`; required when the style has one); where
+    ``(T,)`` blend into the mouth opening (:class:`OpeningStyle`; required when the style has one); the
+    lips round as the person's do for the recogniser's rounded-vowel share ``rounded`` ``(T,)``
+    (:func:`nvp.rounding.rounded_share`, :meth:`PersonStyle.rounded`; required when the style has a
+    rounding); where
     the opening model says the lips close (:meth:`OpeningStyle.closing`; for a style without a closing
     level: where the closure head's probabilities ``closure`` ``(T,)`` do, :func:`closure_weight` with
     ``ramp``), the mouth blends to the person's closed mouth; where ``voice`` ``(T,)`` in [0, 1] (see
@@ -124,6 +131,10 @@ def apply_style(
         if opening is None:
             raise ValueError("this person's style blends in the opening model: pass its openings")
         expr = style.opening.apply(expr, opening)
+    if style.rounding is not None:
+        if rounded is None:
+            raise ValueError("this person's style rounds the lips: pass the rounded-vowel share")
+        expr = style.rounded(expr, rounded)
     if style.closed_expression is not None:
         w = None if style.opening is None else style.opening.closing(opening)
         if w is None and closure is not None:  # a style without a closing level: the closure head decides
@@ -183,9 +194,9 @@ def style_expressions(
         model = style_opening_model(style, opening)
         z = model.predict(in_blocks(opening_windows[0], WINDOW_BLOCK), opening_windows[1])
     fps = None if opening_windows is None else opening_windows[1]
-    return apply_style(
-        style, *network_outputs(net, in_blocks(windows, WINDOW_BLOCK)), voice, ramp, z, fps=fps
-    )
+    audio_exp, closure = network_outputs(net, in_blocks(windows, WINDOW_BLOCK))
+    rounded = None if style.rounding is None else rounded_share(windows)
+    return apply_style(style, audio_exp, closure, voice, ramp, z, fps=fps, rounded=rounded)
 
 
 def predict_expressions(
@@ -215,8 +226,10 @@ def predict_expressions(
         posteriors = extract_features(audio, sample_rate, kind="phonemes")
     feats, opening_feats, _ = speech_features(audio, sample_rate, style, posteriors=posteriors)
     # windows are made block by block: all of them at once would be (T, 16, 191) float32, 37 MB a minute
+    shares: list[np.ndarray] = []  # the rounded share, read from each block as the network reads it
     blocks = iter_frame_windows(feats, fps, num_frames, block=WINDOW_BLOCK)
-    audio_exp, closure = network_outputs(net, blocks)
+    audio_exp, closure = network_outputs(net, rounding_tap(style, blocks, shares))
+    rounded = None if style.rounding is None else np.concatenate([np.zeros(0, np.float32), *shares])
     z = opening_outputs(style, opening_feats, fps, len(audio_exp))
     voice = voice_activity(audio, sample_rate, fps, len(audio_exp))
     text_closure = None
@@ -225,7 +238,18 @@ def predict_expressions(
 
         alignment = align_transcript(transcript[0], audio, sample_rate, transcript[1], posteriors)
         text_closure = bilabial_weights(alignment, fps, len(audio_exp))
-    return apply_style(style, audio_exp, closure, voice, opening=z, text_closure=text_closure, fps=fps)
+    return apply_style(
+        style, audio_exp, closure, voice, opening=z, text_closure=text_closure, fps=fps, rounded=rounded
+    )
+
+
+def rounding_tap(style: PersonStyle, blocks: Iterable[np.ndarray], shares: list) -> Iterator[np.ndarray]:
+    """The feature-window blocks ``blocks`` unchanged; for a style with a rounding, each block's rounded
+    share (:func:`nvp.rounding.rounded_share`) is appended to ``shares`` as it passes."""
+    for block in blocks:
+        if style.rounding is not None:
+            shares.append(rounded_share(block))
+        yield block
 
 
 def opening_outputs(

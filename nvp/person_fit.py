@@ -127,6 +127,10 @@ def pause_rest(
     return rest, open_, delay
 
 
+ROUNDING_MIN_FRAMES = 25
+"""Speaking frames (1 s at 25 fps) from which a person's rounding is learned (:mod:`nvp.rounding`)."""
+
+
 RANGE_GAIN_MAX = 2.0
 """Largest gain that widens the person map's predictions (see :func:`range_calibrated`). On the
 validation people (``scripts/eval_lipsync.py --set validation``, the earlier network): opening range
@@ -246,7 +250,12 @@ def style_from_sample(
     * opening: with an ``opening`` model and the sample's ``opening_windows`` (of that model's features),
       the model corrected on the person's own footage when it is long enough
       (:func:`nvp.opening.adapted_opening_model`) and how its predictions blend into the mouth
-      (:func:`opening_style`, ``opening_weight``).
+      (:func:`opening_style`, ``opening_weight``);
+    * rounding: for the ``"phonemes"`` network, how their lips round on the rounded vowels the recogniser
+      hears (:func:`nvp.rounding.rounding_direction` on their speaking frames, or every frame without
+      ``voiced``, of what the person map and opening leave unexplained; none on fewer than 25 such frames).
+      Measured on the validation people (5 folds): mouth-width correlation 0.276 → 0.295, width on rounded /
+      spread vowels 0.965 → 0.950 (real 0.959), opening correlation and closure F1 unchanged.
     """
     ok = sample.valid
     identity = sample.tracked.identity
@@ -281,6 +290,21 @@ def style_from_sample(
         if calibration is not None:  # the model closes the lips as often as the person does
             shut = float(np.mean(gap <= closed_level(gap)))
             calibration = replace(calibration, closed_below=float(np.quantile(z, shut)))
+    rounding = None
+    from nvp.rounding import is_recogniser_output, rounded_share, rounding_direction
+
+    if manifest["feature_kind"] == "phonemes" and is_recogniser_output(sample.windows):
+
+        speaking = np.ones(len(expression), bool) if voiced is None else voiced[ok]
+        if speaking.sum() >= ROUNDING_MIN_FRAMES:
+            predicted = pmap.apply(audio_exp)
+            if calibration is not None:
+                predicted = calibration.apply(predicted, z)
+            rounding = rounding_direction(
+                (expression - predicted)[speaking],
+                rounded_share(sample.windows[ok])[speaking],
+                None if calibration is None else calibration.gap_weights,
+            )
     info = {"video": sample.name, "frames": int(ok.sum()), "ridge": ridge, "rest": kind, "range_gain": gain}
     if pause_open is not None:
         info["pause_close_after_s"] = round(close_after, 3) if np.isfinite(close_after) else "never"
@@ -298,4 +322,5 @@ def style_from_sample(
         calibration,
         pause_open,
         close_after,
+        *(rounding or (None, 0.0)),
     )

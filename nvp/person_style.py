@@ -21,12 +21,12 @@ from nvp.tracked import TrackedSequence
 if TYPE_CHECKING:
     pass
 
-FORMAT_VERSION = 6
+FORMAT_VERSION = 7
 """2: the person's closed mouth (``closed``) for the network's closure head; 3: the opening calibration
 (:class:`OpeningStyle`); 4: the opening model corrected for the person (``OpeningStyle.adapted_weight``);
 5: where the opening model's output closes their lips (``OpeningStyle.closed_below``); 6: how they hold the
-mouth in pauses over time (``PersonStyle.pause_open`` / ``pause_close_after_s``). Older files load without
-them."""
+mouth in pauses over time (``PersonStyle.pause_open`` / ``pause_close_after_s``); 7: how their lips round
+(``PersonStyle.rounding``). Older files load without them."""
 
 
 CLOSING_RAMP = (0.1, 0.5)
@@ -159,6 +159,10 @@ class PersonStyle:
             throughout.
         pause_close_after_s: seconds into a pause after which the lips rest at ``rest_expression`` (inf:
             this person does not close them in pauses); see :func:`pause_rest`.
+        rounding: ``(K_exp,)`` how this person's lips round: the expression change per unit of the
+            recogniser's rounded-vowel share above :attr:`rounding_mean` (:mod:`nvp.rounding`; it leaves
+            the opening unchanged); None: no rounding beyond what the person map does.
+        rounding_mean: the rounded share's mean over the person's speech.
     """
 
     person_map: PersonMap
@@ -170,6 +174,16 @@ class PersonStyle:
     opening: OpeningStyle | None = None
     pause_open: np.ndarray | None = None
     pause_close_after_s: float = 0.0
+    rounding: np.ndarray | None = None
+    rounding_mean: float = 0.0
+
+    def rounded(self, expression: np.ndarray, share: np.ndarray | None) -> np.ndarray:
+        """Expressions ``(T, K_exp)`` with the person's rounding for the rounded share ``share`` ``(T,)``
+        (:func:`nvp.rounding.rounded_share`); unchanged without a rounding or a share."""
+        if self.rounding is None or share is None:
+            return expression
+        above = np.asarray(share, np.float32) - np.float32(self.rounding_mean)
+        return (expression + above[:, None] * self.rounding).astype(np.float32)
 
     def sealed_lips(self) -> np.ndarray:
         """``(K_exp,)`` the person's lips pressed together, as for p, b and m: their closed mouth moved along
@@ -223,6 +237,9 @@ class PersonStyle:
         if self.pause_open is not None:
             arrays["pause_open"] = self.pause_open
             fields["pause_close_after_s"] = self.pause_close_after_s  # JSON: Infinity for never
+        if self.rounding is not None:
+            arrays["rounding"] = self.rounding
+            fields["rounding_mean"] = self.rounding_mean
         return save_artifact(path, "person_map", FORMAT_VERSION, arrays, fields)
 
     @classmethod
@@ -248,17 +265,19 @@ class PersonStyle:
             opening,
             a.get("pause_open"),
             float(m.get("pause_close_after_s", 0.0)),
+            a.get("rounding"),
+            float(m.get("rounding_mean", 0.0)),
         )
 
 
 def transferred_style(own: PersonStyle, other: PersonStyle) -> PersonStyle:
     """Person ``other``'s talking style on person ``own``'s face (speaking-style transfer).
 
-    ``other``'s person map and closures decide how the mouth moves (how wide it opens, how often it closes,
-    its asymmetries in motion), as offsets from their closed lips, put onto ``own``'s closed lips:
-    ``e = e_other + (closed_own - closed_other)``, so a closure of ``other`` closes ``own``'s lips exactly;
-    in pauses the mouth rests as ``own``'s does. Styles without a closed mouth (format 1) are anchored at
-    their rest mouths instead. The two styles must come from the same network.
+    ``other``'s person map, closures and rounding decide how the mouth moves (how wide it opens, how often
+    it closes, how it rounds, its asymmetries in motion), as offsets from their closed lips, put onto
+    ``own``'s closed lips: ``e = e_other + (closed_own - closed_other)``, so a closure of ``other`` closes
+    ``own``'s lips exactly; in pauses the mouth rests as ``own``'s does. Styles without a closed mouth
+    (format 1) are anchored at their rest mouths instead. The two styles must come from the same network.
     """
     from nvp.errors import NvpError
 
@@ -282,4 +301,6 @@ def transferred_style(own: PersonStyle, other: PersonStyle) -> PersonStyle:
         opening,
         own.pause_open,
         own.pause_close_after_s,
+        other.rounding,
+        other.rounding_mean,
     )

@@ -17,6 +17,7 @@ import numpy as np
 
 from nvp.audio2exp import Audio2ExpressionNet, network_outputs
 from nvp.person import PersonStyle, apply_style, opening_outputs, speech_features
+from nvp.rounding import rounded_share
 
 SAMPLE_RATE = 16000
 LOOKAHEAD_S = 0.4
@@ -108,8 +109,9 @@ class ExpressionStream:
         windows = frame_windows(feats, self.fps, num_frames=n)
         audio_exp, closure = network_outputs(self.net, [windows])
         voice = voice_activity(seg, SAMPLE_RATE, self.fps, n)
-        expr = apply_style(self.style, audio_exp, closure, voice, opening=opening, fps=self.fps)[
-            self.done - first : end - first
-        ]
+        rounded = None if self.style.rounding is None else rounded_share(windows)
+        expr = apply_style(
+            self.style, audio_exp, closure, voice, opening=opening, fps=self.fps, rounded=rounded
+        )[self.done - first : end - first]
         self.done = end
         return expr

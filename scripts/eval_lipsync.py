@@ -31,6 +31,9 @@ Metrics (``nvp.metrics``), output next to the real video's own number where one 
   frames where the mouth rests (within 5 % of the real p95 gap of the person's rest mouth, or below the
   resting level); and the mouth's motion in pauses relative to speech (mean |frame-to-frame change of the
   gap|, pauses / speech);
+- lip rounding: correlation of the output's mouth width (corners 61-291) with the real one, and the median
+  width on frames where the recogniser hears a rounded vowel (``nvp.rounding.ROUNDED_PHONES``) over that on
+  spread vowels (``SPREAD_PHONES``), mean over videos, the real video's in parentheses;
 - jitter ratio (mean |second difference| of the gap, output / real) and the audio-visual offset in frames
   (``nvp.metrics.av_offset`` of the two gaps within ``RESYNC_MAX_LAG``; positive: the output is late), median
   over videos; the synced correlation is the opening correlation at that offset (the shape of the opening
@@ -86,6 +89,7 @@ from nvp.person import (
     style_expressions,
     style_from_sample,
 )
+from nvp.rounding import rounded_classes
 from nvp.vad import frame_speech_probability, voice_activity, with_white_noise
 from nvp.windows import frame_windows
 
@@ -155,6 +159,22 @@ def synced(gap: np.ndarray, gap_real: np.ndarray, varies: bool) -> tuple[int, fl
     return av_offset(gap, gap_real, RESYNC_MAX_LAG)
 
 
+SPREAD_PHONES = ("a", "aɪ", "e", "eɪ", "i", "ɛ", "ɪ", "æ", "ɐ", "ɑ", "ä", "à", "ì", "ĩ", "ẽ", "ã", "ja", "je")
+"""Vowels said with spread or neutral lips (the recogniser's IPA set), the reference for rounding."""
+
+
+def spread_classes() -> np.ndarray:
+    return np.array([i for i, label in enumerate(phoneme_labels()) if label in SPREAD_PHONES])
+
+
+def rounded_narrowing(width: np.ndarray, rounded: np.ndarray, spread: np.ndarray) -> float:
+    """Median mouth width on rounded-vowel frames over that on spread-vowel frames (NaN with fewer than 3
+    of either): below 1 where the lips round."""
+    if rounded.sum() < 3 or spread.sum() < 3:
+        return float("nan")
+    return float(np.median(width[rounded]) / np.median(width[spread]))
+
+
 def evaluate_video(
     video: Path, lang: str, who_name: str, args, net, manifest, opening, model, labels_idx
 ) -> tuple[dict, list[dict]]:
@@ -183,6 +203,9 @@ def evaluate_video(
     # truth from the clean audio: what is said (bilabials) and where the pauses are
     post = extract_features(audio, SR, kind="phonemes")
     bil = bilabial_frames(post.values, labels_idx, post.rate, fps, n) & ok
+    rounded = bilabial_frames(post.values, rounded_classes(), post.rate, fps, n) & ok
+    spread = bilabial_frames(post.values, spread_classes(), post.rate, fps, n) & ok
+    width_real = model.mouth_width(seq.identity, seq.expression)
     voiced = frame_speech_probability(audio, SR, fps, n) >= 0.5
     # each fold's style from its fitting frames, as nvp fit makes it from footage
     styles, rest_gap = [], np.zeros(n)
@@ -220,6 +243,7 @@ def evaluate_video(
         **{k: v for k, v in pause_behaviour(gap_real, pauses, speech, rest_lvl).items()},
         "pause_closed": int(np.sum(gap_real[pauses] <= rest_lvl)),
         "pause_resting": resting(gap_real),
+        "rounded_width": rounded_narrowing(width_real, rounded, spread),
     }
 
     rows = []
@@ -235,10 +259,11 @@ def evaluate_video(
             windows = frame_windows(feats, fps, num_frames=n).astype(np.float32)
             ow = frame_windows(of, fps, num_frames=n).astype(np.float32)
         voice = voice_activity(x, SR, fps, n)
-        gap = np.full(n, np.nan)
+        gap, width = np.full(n, np.nan), np.full(n, np.nan)
         for style, (_, te) in zip(styles, parts, strict=True):
             pred = style_expressions(style, net, windows, voice, args.closure_ramp, (ow, fps), opening)
             gap[te] = model.inner_lip_gap(seq.identity, pred[te])
+            width[te] = model.mouth_width(seq.identity, pred[te])
         varies = gap[ok].std() > 1e-9 and gap_real[ok].std() > 1e-9
         rate = bilabial_closure_rate(gap, bil, closed, lead) if bil.any() else float("nan")
         pb = pause_behaviour(np.where(ok, gap, np.nan), pauses, speech, rest_lvl)
@@ -260,6 +285,8 @@ def evaluate_video(
                 "pause_closed": int(np.sum(gap[pauses] <= rest_lvl)),
                 "pause_resting": resting(gap),
                 "pause_motion_ratio": pb["pause_motion_ratio"],
+                "width_corr": float(np.corrcoef(width[ok], width_real[ok])[0, 1]) if varies else 0.0,
+                "rounded_width": rounded_narrowing(width, rounded, spread),
             }
         )
     return real, rows
@@ -311,6 +338,9 @@ def summarise(reals: list[dict], rows: list[dict], key) -> list[dict]:
                 "pause closed (real)": _both(sel, rl, "pause_closed", pf),
                 "pause resting (real)": _both(sel, rl, "pause_resting", pf),
                 "pause motion (real)": f"{_f(mot_out, 2)} ({_f(mot_real, 2)})",
+                "width corr": _f(np.mean([r["width_corr"] for r in sel])),
+                "rounded width (real)": f"{_f(np.nanmean([r['rounded_width'] for r in sel]))} "
+                f"({_f(np.nanmean([r['rounded_width'] for r in rl]))})",
                 "bilabial / pause frames": f"{bil} / {pf}",
             }
         )

@@ -1,0 +1,127 @@
+"""Lip rounding: the recogniser's rounded-vowel share, the person's rounding learned from their footage, and
+its use in every prediction path."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+from test_audio2exp import fake_sample
+
+from nvp.audio2exp import Audio2ExpConfig, Audio2ExpressionNet, PersonMap
+from nvp.audio_features import phoneme_labels
+from nvp.person import PersonStyle, apply_style, rounding_tap, style_from_sample, transferred_style
+from nvp.rounding import ROUNDED_PHONES, rounded_classes, rounded_share, rounding_direction
+
+D = len(phoneme_labels())
+
+
+def posterior_windows(share: np.ndarray, window: int = 16) -> np.ndarray:
+    """``(T, window, D)`` log-posteriors whose rows give the rounded phones together probability
+    ``share[t]`` (spread evenly over them) and the rest to the first other class."""
+    rounded = rounded_classes()
+    other = next(i for i in range(D) if i not in set(rounded))
+    p = np.full((len(share), window, D), 1e-12)
+    p[..., rounded] = (np.asarray(share)[:, None, None] / len(rounded)).clip(1e-12)
+    p[..., other] = (1 - np.asarray(share))[:, None].clip(1e-12)
+    return np.log(p).astype(np.float32)
+
+
+def test_the_rounded_share_reads_the_rounded_phones_at_the_frame():
+    assert len(rounded_classes()) == len(set(ROUNDED_PHONES) & set(phoneme_labels())) >= 15
+    share = np.array([0.0, 0.3, 1.0, 0.55])
+    np.testing.assert_allclose(rounded_share(posterior_windows(share)), share, atol=1e-5)
+    with pytest.raises(ValueError, match="log-posteriors"):
+        rounded_share(np.zeros((3, 16, 12), np.float32))
+
+
+def test_the_rounding_direction_is_recovered_and_leaves_the_opening_alone():
+    rng = np.random.default_rng(0)
+    k = 20
+    share = rng.uniform(0, 1, 400)
+    true = rng.normal(size=k)
+    opening = rng.normal(size=k)  # the gap's linear weights
+    residual = (share - 0.3)[:, None] * true + 0.05 * rng.normal(size=(400, k))
+    direction, mean = rounding_direction(residual, share)
+    assert mean == pytest.approx(share.mean())
+    np.testing.assert_allclose(direction, true, atol=0.03)
+    kept, _ = rounding_direction(residual, share, opening)
+    assert abs(kept @ opening) < 1e-5 * np.abs(opening).sum()
+    np.testing.assert_allclose(kept, true - (true @ opening) / (opening @ opening) * opening, atol=0.03)
+    assert rounding_direction(residual, np.full(400, 0.2)) is None  # no rounded vowel heard
+
+
+def _rounding_style(k: int = 16) -> PersonStyle:
+    rng = np.random.default_rng(1)
+    pm = PersonMap(rng.normal(size=(k, 8)).astype(np.float32), np.zeros(k, np.float32))
+    style = PersonStyle(pm, np.zeros(k, np.float32), "phonemes", "0" * 64, {})
+    return dataclasses.replace(style, rounding=rng.normal(size=k).astype(np.float32), rounding_mean=0.25)
+
+
+def test_a_rounding_style_moves_the_mouth_by_its_share_and_round_trips(tmp_path):
+    style = _rounding_style()
+    a = np.random.default_rng(2).normal(size=(5, 8)).astype(np.float32)
+    share = np.array([0.25, 1.0, 0.0, 0.5, 0.25], np.float32)
+    with pytest.raises(ValueError, match="rounded-vowel share"):
+        apply_style(style, a, None, None)
+    plain = apply_style(dataclasses.replace(style, rounding=None), a, None, None)
+    out = apply_style(style, a, None, None, rounded=share)
+    np.testing.assert_allclose(out - plain, (share - 0.25)[:, None] * style.rounding, atol=1e-5)
+    back = PersonStyle.load(style.save(tmp_path / "s.npz"))
+    np.testing.assert_array_equal(back.rounding, style.rounding)
+    assert back.rounding_mean == 0.25
+    # style transfer: the other person's rounding, as their opening and closures
+    own = dataclasses.replace(style, rounding=None)
+    assert transferred_style(own, style).rounding is style.rounding
+
+
+def test_the_share_read_block_by_block_equals_the_whole_file():
+    style = _rounding_style()
+    share = np.random.default_rng(3).uniform(size=23)
+    windows = posterior_windows(share)
+    shares: list[np.ndarray] = []
+    passed = list(rounding_tap(style, (windows[i : i + 5] for i in range(0, 23, 5)), shares))
+    assert sum(len(b) for b in passed) == 23
+    np.testing.assert_allclose(np.concatenate(shares), rounded_share(windows), atol=1e-6)
+    none: list[np.ndarray] = []
+    list(rounding_tap(dataclasses.replace(style, rounding=None), [windows], none))
+    assert none == []
+
+
+def test_a_person_whose_lips_round_on_rounded_vowels_gets_their_rounding(face_model):
+    """Synthetic footage: the person's mouth narrows along one coefficient exactly as much as the recogniser
+    hears rounded vowels; the person map barely sees it (a random network's outputs), the fitted rounding
+    must, and predicted mouths narrow on rounded vowels as the footage does."""
+    torch.manual_seed(0)
+    s = fake_sample(face_model, "r", 0, frames=300, dim=D)
+    ident = s.tracked.identity
+    eye = np.eye(face_model.num_exp, dtype=np.float32)
+    base_width = face_model.mouth_width(ident, 0 * eye[:1])[0]
+    narrows = int(np.argmin(face_model.mouth_width(ident, eye) - base_width))  # the most narrowing one
+    share = np.clip(np.sin(np.arange(300) * 0.31), 0, 1)
+    windows = posterior_windows(share)
+    expression = s.expression.copy()
+    expression[:, narrows] += 2.0 * share
+    tracked = dataclasses.replace(s.tracked, expression=expression)
+    sample = dataclasses.replace(s, windows=windows, tracked=tracked)
+    net = Audio2ExpressionNet(Audio2ExpConfig(feature_dim=D)).eval()
+    manifest = {"feature_kind": "phonemes", "sha256": "0" * 64}
+    style = style_from_sample(net, manifest, sample, face_model)
+    assert style.rounding is not None
+    # the person map explains a little of it through the network's outputs, which read the same posteriors
+    assert 1.6 <= style.rounding[narrows] <= 2.2
+    a = np.zeros((2, net.cfg.audio_exp_dim), np.float32)
+    wide, round_ = apply_style(style, a, None, None, rounded=np.array([0.0, 1.0], np.float32))
+    w = face_model.mouth_width(ident, np.stack([wide, round_]))
+    real = face_model.mouth_width(ident, (eye[narrows] * np.array([[0.0], [2.0]])).astype(np.float32))
+    assert 0.8 <= (w[0] - w[1]) / (real[0] - real[1]) <= 1.1
+    # a network that does not read the recogniser's classes gets no rounding
+    mel = dataclasses.replace(s, windows=s.windows[..., :12])
+    assert (
+        style_from_sample(
+            Audio2ExpressionNet(Audio2ExpConfig(feature_dim=12)).eval(), manifest, mel, face_model
+        ).rounding
+        is None
+    )
