@@ -226,7 +226,9 @@ class FrameRenderer(MouthInteriors, DetailBand):
         """:meth:`prepare`'s render pasted into its footage frame with bank entry ``mouth``'s interior
         (default: the entry of least :meth:`entry_costs`); as :meth:`render` returns."""
         frame = face.frame
-        out, painted = frame.copy(), np.zeros(frame.shape[:2], np.float32)
+        out = frame.copy()
+        # the weight only when asked for: zeroing a float (H, W) plane is a full-frame pass (1080p: 8 MB)
+        painted = np.zeros(frame.shape[:2], np.float32) if with_weight else None
         if face.geo is not None:
             interior = None
             if face.interior is not None:
@@ -250,7 +252,8 @@ class FrameRenderer(MouthInteriors, DetailBand):
                 ys, xs = face.slices
                 pixels, alpha, (rows, cols) = pasted
                 out[ys, xs][rows, cols] = pixels.clamp(0, 255).round().byte().permute(1, 2, 0).numpy()
-                painted[ys, xs][rows, cols] = alpha.numpy()
+                if painted is not None:
+                    painted[ys, xs][rows, cols] = alpha.numpy()
         return (out, painted) if with_weight else out
 
 

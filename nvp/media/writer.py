@@ -30,6 +30,14 @@ _AVCOL_RANGE_MPEG = 1
 # The AAC encoder consumes frames of exactly this many samples (the last one may be shorter).
 _AAC_FRAME_SIZE = 1024
 
+X264_SPEED = "me=dia:subme=1:partitions=i8x8,i4x4"
+"""x264 settings on top of preset ``veryfast``: the diamond motion search, one sub-pixel refinement and
+no inter partitions below 16x16 (issue 48). On 90 frames of a 1080p talking head (wav2lipgfpgan kim, crf
+18, 2-core AMD EPYC under load, runs interleaved) the encoder and its RGB → YUV conversion took 17.5-20.4
+→ 13.1-13.2 ms of CPU per frame, the file 0.69 → 0.71 MB, PSNR to the frames given 43.91 → 43.87 dB
+(``superfast``: 15.5 ms, 1.57 MB; it also drops x264's macroblock tree, which is what keeps static
+footage small)."""
+
 
 class VideoWriter:
     """Write RGB frames (and optionally an audio track) to an H.264/AAC MP4, atomically.
@@ -46,9 +54,9 @@ class VideoWriter:
     file of a writer that was killed (its process gone) is removed by the next writer to the same path.
     A full disk is reported as :class:`nvp.artifact.DiskFullError` ("disk full while writing PATH").
 
-    Video is H.264 (libx264, yuv420p, BT.709 tagged, preset ``veryfast``). yuv420p needs even
-    dimensions: an odd ``width``/``height`` is padded to the next even number by repeating the last
-    column/row, so the file is up to one pixel wider/taller than the frames given.
+    Video is H.264 (libx264, yuv420p, BT.709 tagged, preset ``veryfast`` with :data:`X264_SPEED`).
+    yuv420p needs even dimensions: an odd ``width``/``height`` is padded to the next even number by
+    repeating the last column/row, so the file is up to one pixel wider/taller than the frames given.
 
     Audio (``float`` in ``[-1, 1]``, shape ``(n,)`` mono or ``(n, channels)`` with 1 to 8 channels, at
     ``audio_rate`` Hz) is AAC-encoded, interleaved with the video as frames arrive, and trimmed or
@@ -118,7 +126,7 @@ class VideoWriter:
         options = (
             {"movflags": flags + "+use_metadata_tags"} if suffix.lower() in (".mp4", ".mov", ".m4v") else {}
         )
-        x264 = {"crf": str(int(crf)), "preset": "veryfast"}
+        x264 = {"crf": str(int(crf)), "preset": "veryfast", "x264-params": X264_SPEED}
         if live:
             x264.update({"tune": "zerolatency", "g": str(max(1, round(float(self.fps))))})
         try:
@@ -200,7 +208,8 @@ class VideoWriter:
             raise ValueError(f"frame dtype mismatch: expected uint8, found {frame.dtype}")
         if self._pad_w or self._pad_h:
             frame = np.pad(frame, ((0, self._pad_h), (0, self._pad_w), (0, 0)), mode="edge")
-        rgb = av.VideoFrame.from_ndarray(np.ascontiguousarray(frame), format="rgb24")
+        # wrapped, not copied (the scaler reads it at once; 1080p: 4.0 → 3.3 ms with the conversion below)
+        rgb = av.VideoFrame.from_numpy_buffer(np.ascontiguousarray(frame), format="rgb24")
         yuv = self._reformatter.reformat(
             rgb, format="yuv420p", dst_colorspace=Colorspace.ITU709, dst_color_range=ColorRange.MPEG
         )

@@ -6,8 +6,10 @@ Without ``--person``, a bundle is made from nvp's demo target (a ``--size``² ta
 trained for 2 steps: speed does not depend on training). The driving audio is ``--seconds`` of a
 synthetic voice; the dub runs in a fresh process so its peak RSS is its own, a second time while another
 process keeps one core busy (a Python busy loop), and a third time under ``cProfile`` with one render
-worker (``NVP_THREADS=1``: cProfile sees only its own thread, and the dub renders frames in parallel
-threads otherwise), which splits the wall time into stages (decode, rasterize, network, detail transfer,
+worker on one PyTorch thread, as each of the parallel workers has (``NVP_THREADS=1 OMP_NUM_THREADS=1``:
+cProfile sees only its own thread, and the dub renders frames in parallel threads otherwise; with PyTorch's
+two threads in one worker, their busy waiting on a loaded machine made the networks look several times
+their share), which splits the wall time into stages (decode, rasterize, network, detail transfer,
 crop and paste, encode, audio → expressions; profiling slows everything a little, so the shares matter,
 not the sums).
 """
@@ -86,6 +88,19 @@ def child(audio: str, person: str, out: str, profile: bool = False, glibc_defaul
     print(json.dumps(m))
 
 
+def cpu_name() -> str:
+    """The CPU's model name (``/proc/cpuinfo``) and whether it computes bfloat16 natively (the networks'
+    precision follows it, :func:`renderer.networks.fast_bf16`); the machine type elsewhere."""
+    try:
+        info = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return platform.machine()
+    names = [line.split(":", 1)[1].strip() for line in info.splitlines() if line.startswith("model name")]
+    flags = next((line for line in info.splitlines() if line.startswith("flags")), "").split()
+    bf16 = "avx512_bf16" in flags or "amx_bf16" in flags
+    return f"{names[0] if names else platform.machine()}, {'with' if bf16 else 'no'} bfloat16"
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seconds", type=float, default=10.0)
@@ -105,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
     from nvp.app.demo_voice import AUDIO_RATE, speech_script, synth_voice
     from nvp.app.fit import FitConfig, fit
 
-    print(f"# bench_dub ({platform.machine()}, {os.cpu_count()} CPUs, load {os.getloadavg()[0]:.2f})")
+    print(f"# bench_dub ({cpu_name()}, {os.cpu_count()} CPUs, load {os.getloadavg()[0]:.2f})")
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         person = args.person
@@ -132,7 +147,7 @@ def main(argv: list[str] | None = None) -> int:
             return json.loads(proc.stdout.strip().splitlines()[-1])
 
         m = run()
-        stages = run("--profile", env={**os.environ, "NVP_THREADS": "1"})
+        stages = run("--profile", env={**os.environ, "NVP_THREADS": "1", "OMP_NUM_THREADS": "1"})
         busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])  # another process, one core
         try:
             time.sleep(1.0)
