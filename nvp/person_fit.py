@@ -27,7 +27,7 @@ if TYPE_CHECKING:
 OPENING_WEIGHT = 0.75
 """Share of the generic opening model (:mod:`nvp.opening`) in the mouth opening, against the person map's
 0.25 (see :class:`OpeningStyle`). Chosen on the validation people of ``scripts/data_split.json``
-(``scripts/eval_lipsync.py --set validation --opening-weight W``); re-checked for the Whisper model: 0.5 /
+(``scripts/eval/lipsync.py --set validation --opening-weight W``); re-checked for the Whisper model: 0.5 /
 0.65 / 0.75 / 0.85 / 1.0 gave opening correlation 0.636 / 0.643 / 0.644 / 0.642 / 0.637 (1.0: padded
 features) and closure F1 0.447 / 0.438 / 0.447 / 0.446 / 0.419."""
 
@@ -66,7 +66,7 @@ words, not a pause (:data:`PAUSE_MIN_S`), and a mouth does not close in it."""
 PAUSE_TIMING_MIN_FRAMES = 10
 """Pause frames (0.4 s at 25 fps) from which the footage's pauses decide *when* the lips rest in a pause
 (:attr:`PersonStyle.pause_open`, :attr:`PersonStyle.pause_close_after_s`); with fewer, one mouth holds
-every pause (their median pause mouth). Chosen on the validation people (``scripts/eval_lipsync.py --set
+every pause (their median pause mouth). Chosen on the validation people (``scripts/eval/lipsync.py --set
 validation --pause-timing-min-frames N``, clean audio; pause frames closed, real 0.094 / opening
 correlation): one mouth always 0.071 / 0.685 (before: 0.071 / 0.689), N = 20, 50, 100 0.153 / 0.683,
 N = 5, 10 0.082 / 0.691; see docs/experiments/lip-sync.md."""
@@ -133,7 +133,7 @@ ROUNDING_MIN_FRAMES = 25
 
 RANGE_GAIN_MAX = 2.0
 """Largest gain that widens the person map's predictions (see :func:`range_calibrated`). On the
-validation people (``scripts/eval_lipsync.py --set validation``, the earlier network): opening range
+validation people (``scripts/eval/lipsync.py --set validation``, the earlier network): opening range
 0.90 → 1.09, closure F1 0.09 → 0.26, opening correlation unchanged (0.49)."""
 
 
@@ -243,7 +243,7 @@ def style_from_sample(
     * rest expression: the person's mouth in their pauses when ``voiced`` ``(T,)`` (see
       :func:`voiced_frames`) shows enough of them (:func:`pause_rest`; with ``pause_timing_min_frames``
       pause frames or more, also when in a pause their lips come to rest), else their most closed mouth.
-      Measured on the validation people of ``scripts/data_split.json`` (``scripts/eval_lipsync.py``): pause
+      Measured on the validation people of ``scripts/data_split.json`` (``scripts/eval/lipsync.py``): pause
       frames at rest 0.85 → 0.06 (real 0.09), opening correlation 0.40 → 0.49;
     * closed expression: their closed lips while speaking (:func:`closed_mouth`), when the network has a
       closure head;

@@ -34,7 +34,7 @@ CLOSING_RAMP = (0.1, 0.5)
 model's output) where the blend towards their closed mouth is full and where it ends. With a closing level
 the opening model, not the network's closure head, decides where the lips close: on the validation people
 the model's output ranks the held-out closed frames better (ROC AUC per long clip 0.85-0.99, the head
-0.60-0.82). Chosen there (``scripts/eval_lipsync.py --set validation``), closure F1 / opening correlation
+0.60-0.82). Chosen there (``scripts/eval/lipsync.py --set validation``), closure F1 / opening correlation
 with clean audio, 10 dB, 0 dB SNR:
 
     closure head   0.477 / 0.664   0.357 / 0.493   0.225 / 0.323

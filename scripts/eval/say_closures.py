@@ -2,7 +2,7 @@
 that text (``nvp dub --transcript``; ``nvp say`` passes its own text the same way), measured on the output
 frames by an independent probe (mediapipe's landmarks, no nvp geometry).
 
-    python scripts/eval_say_closures.py --person BUNDLE [--out out/eval_say_closures] [--texts en fr]
+    python -m scripts.eval.say_closures --person BUNDLE [--out out/eval_say_closures] [--texts en fr]
 
 For each text of ``eval_text_closures.TEXTS`` the speech is made offline (English: piper, as ``nvp say``;
 others: the espeak-ng program) and dubbed onto the person twice. mediapipe's face landmarker reads every
@@ -23,7 +23,6 @@ from pathlib import Path
 
 import numpy as np
 import soundfile as sf
-from eval_text_closures import TEXTS, speak
 
 from nvp.app.dub import dub
 from nvp.app.report import markdown_table
@@ -37,6 +36,7 @@ from nvp.metrics import (
     bilabial_frames,
     closed_level,
 )
+from scripts.eval.text_closures import TEXTS, speak
 from tracking.detect import detect_video
 
 SR = 16000

@@ -1,7 +1,7 @@
 """Do p, b and m close the lips when the text is known? Speech made from a text, dubbed onto test people with
 and without that text (``nvp say`` / ``nvp dub --transcript``), at the expression level.
 
-    python scripts/eval_text_closures.py [--cache /tmp/nvp-cache] [--out out/eval_text_closures]
+    python -m scripts.eval.text_closures [--cache /tmp/nvp-cache] [--out out/eval_text_closures]
 
 Each person of ``--videos`` (default: test people of ``scripts/data_split.json`` in several languages, never
 used for training or choosing anything) gets their style from their whole clip exactly as ``nvp fit`` makes
@@ -10,11 +10,11 @@ offline (English: piper's joe voice, as ``nvp say``; other languages: the espeak
 language's voice — Debian's ``espeak-ng`` package) and turned into the person's expressions as ``nvp dub``
 does (``nvp.person.predict_expressions``), once from the audio alone and once with the transcript.
 
-Metric (``nvp.metrics``, as ``scripts/eval_lipsync.py``): the p / b / m frames are those where the phoneme
+Metric (``nvp.metrics``, as ``scripts/eval/lipsync.py``): the p / b / m frames are those where the phoneme
 recogniser hears p, b or m in the speech (posteriors >= 0.5; from the audio, not from the text); such a frame
 counts as closed when the predicted inner-lip gap is at or below the person's closed level (of their own
 tracked footage) at some frame from ``BILABIAL_LEAD_S`` before it to it. The real footage's own rate (test
-people, ``scripts/eval_lipsync.py``) is the reference: 0.71 pooled, 0.77-0.86 on longer English footage.
+people, ``scripts/eval/lipsync.py``) is the reference: 0.71 pooled, 0.77-0.86 on longer English footage.
 """
 
 from __future__ import annotations
@@ -42,10 +42,9 @@ from nvp.metrics import (
 from nvp.opening import default_opening_model
 from nvp.person import predict_expressions, style_from_sample, voiced_frames
 from nvp.tts import synthesize
+from scripts.common import ROOT, SHARED
 
-HERE = Path(__file__).resolve().parent
-SHARED = HERE.parents[1] / "shared" / "data"
-ASSETS = HERE.parent / "nvp" / "assets"
+ASSETS = ROOT / "nvp" / "assets"
 SR = 16000
 TEXTS = {
     "en": (

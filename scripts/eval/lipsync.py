@@ -1,6 +1,6 @@
 """Lip-sync behaviour of audio → expressions on the held-out people of ``scripts/data_split.json``.
 
-    python scripts/eval_lipsync.py [--set test] [--cache /tmp/nvp-cache] [--out out/eval_lipsync]
+    python -m scripts.eval.lipsync [--set test] [--cache /tmp/nvp-cache] [--out out/eval_lipsync]
 
 Per video of the chosen split (default: test, people never used for training or choosing anything), in
 ``--folds`` (default 5) consecutive parts: each part is predicted from a style made on all the other frames
@@ -92,10 +92,9 @@ from nvp.person import (
 from nvp.rounding import rounded_classes
 from nvp.vad import frame_speech_probability, voice_activity, with_white_noise
 from nvp.windows import frame_windows
+from scripts.common import ROOT, SHARED, SPLIT, data_missing
 
-HERE = Path(__file__).resolve().parent
-SHARED = HERE.parents[1] / "shared" / "data"
-ASSETS = HERE.parent / "nvp" / "assets"
+ASSETS = ROOT / "nvp" / "assets"
 SR = 16000
 TRAIN_FRACTION = 0.8
 CONDITIONS = {"clean": None, "noise 10 dB": 10.0, "noise 0 dB": 0.0}
@@ -349,7 +348,7 @@ def summarise(reals: list[dict], rows: list[dict], key) -> list[dict]:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--split", type=Path, default=HERE / "data_split.json")
+    ap.add_argument("--split", type=Path, default=SPLIT)
     ap.add_argument("--set", default="test", choices=["test", "validation", "train"])
     ap.add_argument("--net", type=Path, default=ASSETS / "audio2exp_phonemes.json")
     ap.add_argument("--cache", type=Path, default=Path("/tmp/nvp-cache"))
@@ -388,8 +387,7 @@ def main(argv: list[str] | None = None) -> int:
         help="share of the opening model in the mouth opening (0: the person map alone)",
     )
     args = ap.parse_args(argv)
-    if not SHARED.is_dir():
-        print(f"no evaluation data: {SHARED} does not exist")
+    if data_missing(SHARED):
         return 0
     split = json.loads(args.split.read_text())
     who = {c: (p, v["language"]) for p, v in split["people"].items() for c in v["clips"]}

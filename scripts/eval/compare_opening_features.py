@@ -1,6 +1,6 @@
 """Which speech features for the opening model, per language: the shipped recipe on each candidate kind.
 
-    python scripts/compare_opening_features.py CORPUS --cache /tmp/nvp-cache \
+    python -m scripts.eval.compare_opening_features CORPUS --cache /tmp/nvp-cache \
         --kinds whisper whisper_base_l1 whisper_base_l2 [whisper_base_l2+phonetic ...] [--out DIR]
 
 ``CORPUS`` is a folder of the clips (or links to them) that ``nvp train-opening`` trains on: the train and
@@ -22,7 +22,7 @@ used by ``nvp dub``). Tracking and features come from ``--cache`` (``nvp.app.cor
 
 ``--test-models M1.json M2.json`` (after the choice; nothing is trained or chosen): each opening model's
 whole-clip correlation (the model alone, as on validation) on every test clip of ``scripts/data_split.json``,
-per language — more frames per language than ``scripts/eval_lipsync.py``'s last 20 % of each clip.
+per language — more frames per language than ``scripts/eval/lipsync.py``'s last 20 % of each clip.
 """
 
 from __future__ import annotations
@@ -41,8 +41,7 @@ from nvp.app.report import markdown_table
 from nvp.app.train_opening import RIDGES, correlations, opening_targets, train_opening
 from nvp.face_model import default_face_model
 from nvp.opening import NormalEquations, normal_equations
-
-HERE = Path(__file__).resolve().parent
+from scripts.common import SPLIT, VIDEOS
 
 LEAVE_OUT = {
     "German (mimictalk)": ("de", ["mimictalk__German_20s.mp4"], ["mimictalk__German_20s.mp4"]),
@@ -95,7 +94,7 @@ def report_test(models: list[Path], split: dict, lang: dict, cache: Path, out: P
     from nvp.app.corpus import load_sample
     from nvp.opening import OpeningModel
 
-    shared = HERE.parents[1] / "shared" / "data" / "video"
+    shared = VIDEOS
     face = default_face_model()
     per_clip: dict[str, dict[str, float]] = {}
     for path in models:
@@ -131,7 +130,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("corpus", type=Path, help="folder of the training + validation clips (links are fine)")
     ap.add_argument("--kinds", nargs="+", default=[], help="feature kinds, or A+B for two joined")
     ap.add_argument("--cache", type=Path, default=Path("/tmp/nvp-cache"))
-    ap.add_argument("--split", type=Path, default=HERE / "data_split.json")
+    ap.add_argument("--split", type=Path, default=SPLIT)
     ap.add_argument("--out", type=Path, default=Path("out/opening_features"))
     ap.add_argument(
         "--ridges",

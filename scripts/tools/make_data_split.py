@@ -1,6 +1,6 @@
 """Write ``scripts/data_split.json``: the fixed train / validation / test split of the real videos by person.
 
-    python scripts/make_data_split.py [--check]
+    python -m scripts.tools.make_data_split [--check]
 
 The rule (also written into the file):
 
@@ -33,11 +33,10 @@ import hashlib
 import json
 import sys
 from collections import Counter
-from pathlib import Path
 
-HERE = Path(__file__).resolve().parent
-OUT = HERE / "data_split.json"
-SHARED = HERE.parents[1] / "shared" / "data"
+from scripts.common import ROOT, SHARED, SPLIT
+
+OUT = SPLIT
 
 # person id -> (language, clips); ids and languages transcribed from CATALOG.md's speaker / language columns
 PEOPLE: dict[str, tuple[str, list[str]]] = {
@@ -148,7 +147,7 @@ def hash_unit(person: str) -> float:
 
 
 def build() -> dict:
-    manifest = json.loads((HERE.parent / "nvp" / "assets" / "audio2exp_phonemes.json").read_text())
+    manifest = json.loads((ROOT / "nvp" / "assets" / "audio2exp_phonemes.json").read_text())
     shipped = manifest["split"]
     role = {c: "train" for c in shipped["train"]} | {c: "validation" for c in shipped["validation"]}
     people = {}
