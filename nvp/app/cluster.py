@@ -298,6 +298,7 @@ class _Tracker:
                     )
                 seen.append(msg.get("where", "?"))
             elif msg.get("kind") == "progress":
+                self.progress.pop(key, None)  # re-inserted last: the newest progress is at the end
                 self.progress[key] = (str(msg.get("stage", "")), float(msg.get("percent", 0.0)))
 
 
@@ -347,10 +348,12 @@ def run_batch(
                     if on_outcome is not None:
                         on_outcome(outcome)
                     bar.update(1)
-                if running:
-                    key, (stage, pct) = next(iter(running.items()))
-                    if key in tracker.names and key not in outcomes:
-                        bar.set_postfix_str(f"{tracker.names[key]}: {stage} {pct:.0f}%", refresh=False)
+                unfinished = [k for k in running if k not in outcomes]
+                if unfinished:  # the job whose progress came last
+                    stage, pct = running[unfinished[-1]]
+                    name = tracker.names[unfinished[-1]]
+                    name = name if len(name) <= 40 else "…" + name[-39:]
+                    bar.set_postfix_str(f"{name}: {stage} {pct:.0f}%", refresh=False)
                 bar.refresh()
         finally:
             bar.close()
