@@ -294,7 +294,6 @@ def style_from_sample(
     from nvp.rounding import is_recogniser_output, rounded_share, rounding_direction
 
     if manifest["feature_kind"] == "phonemes" and is_recogniser_output(sample.windows):
-
         speaking = np.ones(len(expression), bool) if voiced is None else voiced[ok]
         if speaking.sum() >= ROUNDING_MIN_FRAMES:
             predicted = pmap.apply(audio_exp)

@@ -20,7 +20,7 @@ import pytest
 import soundfile as sf
 from test_pipeline import speechlike
 
-from nvp.app import cluster
+from nvp.app import cluster, cluster_nodes
 from nvp.errors import NvpError
 
 ENV = {**os.environ, "NVP_THREADS": "1"}
@@ -83,7 +83,7 @@ class LocalCluster:
         self.folder, port = folder, free_port()
         self.address = f"tcp://127.0.0.1:{port}"
         self.procs: list[subprocess.Popen] = []
-        self.head = self._start(cluster.head_command("127.0.0.1", port), "head")
+        self.head = self._start(cluster_nodes.head_command("127.0.0.1", port), "head")
         self.workers: list[subprocess.Popen] = []
 
     def _start(self, cmd: list[str], name: str) -> subprocess.Popen:
@@ -93,7 +93,10 @@ class LocalCluster:
         return p
 
     def join(self, n: int = 1) -> list[subprocess.Popen]:
-        new = [self._start(cluster.join_command(self.address, host="127.0.0.1"), "worker") for _ in range(n)]
+        new = [
+            self._start(cluster_nodes.join_command(self.address, host="127.0.0.1"), "worker")
+            for _ in range(n)
+        ]
         self.workers += new
         want = len([w for w in self.workers if w.poll() is None])
         client = cluster.connect(self.address, timeout=60)

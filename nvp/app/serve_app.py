@@ -28,8 +28,8 @@ class App:
     """The data folder (locked: one server per folder), the job store and the worker behind the handler.
 
     ``token``: the API token (None: a new random one); ``cluster``: a cluster head's address, whose
-    workers then run the jobs (:class:`nvp.app.cluster.ClusterWorker`; the data folder must be shared with
-    them, at the same path). ``close()`` releases everything."""
+    workers then run the jobs (:class:`nvp.app.serve_cluster.ClusterWorker`; the data folder must be
+    shared with them, at the same path). ``close()`` releases everything."""
 
     def __init__(
         self,
@@ -54,7 +54,7 @@ class App:
             self._lock = threading.Lock()
             self._marks: dict[str, str] = {}
             if cluster:
-                from nvp.app.cluster import ClusterWorker
+                from nvp.app.serve_cluster import ClusterWorker
 
                 self.worker = ClusterWorker(self.store, self.data, cluster, on_done=self._ended)
             else:

@@ -32,7 +32,7 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=1.0, help="audio per dub")
     ap.add_argument("--workers", type=int, default=2)
     args = ap.parse_args()
-    from nvp.app import cluster
+    from nvp.app import cluster, cluster_nodes
     from nvp.app.demo_voice import speech_script, synth_voice
 
     tmp = Path(tempfile.mkdtemp(prefix="nvp-bench-cluster-"))
@@ -60,10 +60,10 @@ def main() -> None:
     port = 8700 + os.getpid() % 1000
     address = f"tcp://127.0.0.1:{port}"
     quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL}
-    procs = [subprocess.Popen(cluster.head_command("127.0.0.1", port), **quiet)]
+    procs = [subprocess.Popen(cluster_nodes.head_command("127.0.0.1", port), **quiet)]
     try:
         procs += [
-            subprocess.Popen(cluster.join_command(address, host="127.0.0.1"), **quiet)
+            subprocess.Popen(cluster_nodes.join_command(address, host="127.0.0.1"), **quiet)
             for _ in range(args.workers)
         ]
         client = cluster.connect(address, timeout=60)

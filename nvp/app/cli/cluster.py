@@ -28,13 +28,14 @@ def add_parser(sub) -> None:
 
 
 def run_head(args: argparse.Namespace) -> int:
-    from nvp.app.cluster import run_head
+    from nvp.app.cluster_nodes import run_head
 
     return run_head(args.host, args.port)
 
 
 def run_join(args: argparse.Namespace) -> int:
-    from nvp.app.cluster import head_address, run_worker
+    from nvp.app.cluster import head_address
+    from nvp.app.cluster_nodes import run_worker
 
     return run_worker(head_address(args.head), args.name, args.host)
 
