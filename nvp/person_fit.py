@@ -20,6 +20,7 @@ from nvp.audio2exp import (
 from nvp.face_model import FaceModel
 from nvp.metrics import closed_level
 from nvp.person_style import OpeningStyle, PersonStyle, VideoSample
+from nvp.rounding import is_recogniser_output, rounded_share, rounding_direction
 
 if TYPE_CHECKING:
     from nvp.opening import OpeningModel
@@ -291,8 +292,6 @@ def style_from_sample(
             shut = float(np.mean(gap <= closed_level(gap)))
             calibration = replace(calibration, closed_below=float(np.quantile(z, shut)))
     rounding = None
-    from nvp.rounding import is_recogniser_output, rounded_share, rounding_direction
-
     if manifest["feature_kind"] == "phonemes" and is_recogniser_output(sample.windows):
         speaking = np.ones(len(expression), bool) if voiced is None else voiced[ok]
         if speaking.sum() >= ROUNDING_MIN_FRAMES:

@@ -171,7 +171,7 @@ def run_job(argv: Sequence[str], cwd: str) -> dict[str, Any]:
     from distributed import get_worker
     from distributed.worker import thread_state
 
-    from nvp.app.jobs import parse_progress
+    from nvp.app.jobs import follow_stderr
 
     worker = get_worker()
     key = getattr(thread_state, "key", "")
@@ -201,27 +201,10 @@ def run_job(argv: Sequence[str], cwd: str) -> dict[str, Any]:
             time.sleep(0.5)
 
     threading.Thread(target=watch, daemon=True).start()
-    last_error, last_sent, buf = "", 0.0, b""
-    while True:
-        chunk = os.read(proc.stderr.fileno(), 4096)
-        if chunk:
-            buf += chunk
-            *lines, buf = re.split(rb"[\r\n]", buf)
-            buf = buf[-65536:]
-        else:
-            lines, buf = [buf], b""
-        for raw in lines:
-            line = raw.decode("utf-8", "replace")
-            p = parse_progress(line)
-            if p is not None:
-                if time.monotonic() - last_sent > 0.5:
-                    _emit(worker, "progress", key, stage=p[0], percent=p[1], left=p[2])
-                    last_sent = time.monotonic()
-            elif line.strip():
-                last_error = line.strip()
-        if not chunk:
-            break
-    proc.stderr.close()
+    last_error = follow_stderr(
+        proc.stderr,
+        lambda stage, percent, left: _emit(worker, "progress", key, stage=stage, percent=percent, left=left),
+    )
     code = proc.wait()
     reader.join(5)
     if code and stopped.is_set():

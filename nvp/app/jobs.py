@@ -403,26 +403,40 @@ class Worker(threading.Thread):
     def _follow(self, job_id: str, proc: subprocess.Popen) -> str:
         """Read the job's stderr to its end: progress into the store; returns the last other line."""
         assert proc.stderr is not None
-        last_error, last_write, buf = "", 0.0, b""
-        while True:
-            chunk = os.read(proc.stderr.fileno(), 4096)
-            if chunk:
-                buf += chunk
-                *lines, buf = re.split(rb"[\r\n]", buf)
-                buf = buf[-65536:]
-            else:
-                lines, buf = [buf], b""
-            for raw in lines:
-                line = raw.decode("utf-8", "replace")
-                p = parse_progress(line)
-                if p is not None and time.monotonic() - last_write > 0.5:
-                    self.store.update(job_id, ("running",), stage=p[0], percent=p[1], left=p[2])
-                    last_write = time.monotonic()
-                elif p is None and line.strip():
-                    last_error = line.strip()
-            if not chunk:
-                proc.stderr.close()
-                return last_error
+        return follow_stderr(
+            proc.stderr,
+            lambda stage, percent, left: self.store.update(
+                job_id, ("running",), stage=stage, percent=percent, left=left
+            ),
+        )
+
+
+def follow_stderr(
+    stream, on_progress: Callable[[str, float, float | None], None], every_s: float = 0.5
+) -> str:
+    """Read a job process's stderr ``stream`` to its end (then close it): its progress lines
+    (:func:`parse_progress`) go to ``on_progress(stage, percent, left)``, at most every ``every_s``; returns
+    the last other non-empty line (the error, when it failed)."""
+    last_error, last_sent, buf = "", 0.0, b""
+    while True:
+        chunk = os.read(stream.fileno(), 4096)
+        if chunk:
+            buf += chunk
+            *lines, buf = re.split(rb"[\r\n]", buf)
+            buf = buf[-65536:]
+        else:
+            lines, buf = [buf], b""
+        for raw in lines:
+            line = raw.decode("utf-8", "replace")
+            p = parse_progress(line)
+            if p is not None and time.monotonic() - last_sent > every_s:
+                on_progress(*p)
+                last_sent = time.monotonic()
+            elif p is None and line.strip():
+                last_error = line.strip()
+        if not chunk:
+            stream.close()
+            return last_error
 
 
 def run_command(argv: list[str], main: Callable[[list[str]], int] | None = None) -> int:
