@@ -39,6 +39,7 @@ from nvp.person_fit import (
 from nvp.person_style import (
     CLOSING_RAMP,
     FORMAT_VERSION,
+    ROUNDED_APART,
     OpeningStyle,
     PersonStyle,
     VideoSample,
@@ -61,6 +62,7 @@ __all__ = [  # the style's data and learning live in nvp.person_style and nvp.pe
     "PAUSE_REST_AFTER_MIN_S",
     "PAUSE_TIMING_MIN_FRAMES",
     "RANGE_GAIN_MAX",
+    "ROUNDED_APART",
     "WINDOW_BLOCK",
     "OpeningStyle",
     "PersonStyle",
@@ -120,7 +122,8 @@ def apply_style(
     rounding); where
     the opening model says the lips close (:meth:`OpeningStyle.closing`; for a style without a closing
     level: where the closure head's probabilities ``closure`` ``(T,)`` do, :func:`closure_weight` with
-    ``ramp``), the mouth blends to the person's closed mouth; where ``voice`` ``(T,)`` in [0, 1] (see
+    ``ramp``), the mouth blends to the person's closed mouth, less where a rounded vowel is heard
+    (:data:`ROUNDED_APART`); where ``voice`` ``(T,)`` in [0, 1] (see
     :func:`nvp.vad.voice_activity`) is low, it blends to their rest mouth as they hold it in pauses
     (:meth:`PersonStyle.rest_track`, which needs the video frame rate ``fps``). ``text_closure`` ``(T,)`` in
     [0, 1]: where a transcript says the lips close (:func:`nvp.transcript.bilabial_weights`); the mouth
@@ -139,6 +142,8 @@ def apply_style(
         w = None if style.opening is None else style.opening.closing(opening)
         if w is None and closure is not None:  # a style without a closing level: the closure head decides
             w = closure_weight(closure, ramp)
+        if w is not None and rounded is not None:  # rounded lips are parted (ROUNDED_APART)
+            w = w * np.clip(1.0 - ROUNDED_APART * np.asarray(rounded, np.float64), 0.0, 1.0)
         if w is not None:
             expr = expr + w[:, None] * (style.closed_expression - expr)
         if text_closure is not None:  # the text's p, b and m: lips sealed, not only closed
@@ -195,7 +200,7 @@ def style_expressions(
         z = model.predict(in_blocks(opening_windows[0], WINDOW_BLOCK), opening_windows[1])
     fps = None if opening_windows is None else opening_windows[1]
     audio_exp, closure = network_outputs(net, in_blocks(windows, WINDOW_BLOCK))
-    rounded = None if style.rounding is None else rounded_share(windows)
+    rounded = rounded_share(windows) if style.hears_rounding else None
     return apply_style(style, audio_exp, closure, voice, ramp, z, fps=fps, rounded=rounded)
 
 
@@ -229,7 +234,7 @@ def predict_expressions(
     shares: list[np.ndarray] = []  # the rounded share, read from each block as the network reads it
     blocks = iter_frame_windows(feats, fps, num_frames, block=WINDOW_BLOCK)
     audio_exp, closure = network_outputs(net, rounding_tap(style, blocks, shares))
-    rounded = None if style.rounding is None else np.concatenate([np.zeros(0, np.float32), *shares])
+    rounded = np.concatenate([np.zeros(0, np.float32), *shares]) if style.hears_rounding else None
     z = opening_outputs(style, opening_feats, fps, len(audio_exp))
     voice = voice_activity(audio, sample_rate, fps, len(audio_exp))
     text_closure = None
@@ -244,10 +249,11 @@ def predict_expressions(
 
 
 def rounding_tap(style: PersonStyle, blocks: Iterable[np.ndarray], shares: list) -> Iterator[np.ndarray]:
-    """The feature-window blocks ``blocks`` unchanged; for a style with a rounding, each block's rounded
-    share (:func:`nvp.rounding.rounded_share`) is appended to ``shares`` as it passes."""
+    """The feature-window blocks ``blocks`` unchanged; for a style whose features are the recogniser's
+    (:attr:`PersonStyle.hears_rounding`), each block's rounded share (:func:`nvp.rounding.rounded_share`) is
+    appended to ``shares`` as it passes."""
     for block in blocks:
-        if style.rounding is not None:
+        if style.hears_rounding:
             shares.append(rounded_share(block))
         yield block
 

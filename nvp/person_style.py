@@ -48,6 +48,17 @@ with clean audio, 10 dB, 0 dB SNR:
 (0.1, 0.5) and (0, 0.6) have the highest mean (0.473); the p/b/m frames closed at 10 dB rise 0.50 → 0.84."""
 
 
+ROUNDED_APART = 2.0
+"""How strongly a rounded vowel keeps the lips apart: where the recogniser hears a rounded vowel with
+share ``r`` (:func:`nvp.rounding.rounded_share`), the blend towards the closed mouth is scaled by
+``max(0, 1 - ROUNDED_APART r)``. The opening model's output is low on o / u (a rounded mouth is small), so
+its closing level closed rounded lips that real mouths keep parted. Chosen on the validation people
+(``scripts/eval/lipsync.py --set validation``, 5 folds, 231 rounded-vowel frames): share of those frames
+closed 0.420 / 0.359 / 0.281 / 0.251 for 0 / 1 / 2 / 4 (real footage 0.195), closure F1 0.500 / 0.502 /
+0.506 / 0.506 clean, 0.404 / 0.407 / 0.406 / 0.395 at 10 dB SNR, bilabial closures unchanged (0.924). A
+veto by every vowel (spread ones too) did no better (F1 0.507 / 0.509 at 1 / 2, 10 dB 0.408 / 0.388)."""
+
+
 @dataclass(frozen=True)
 class OpeningStyle:
     """How the generic opening model's prediction becomes this person's mouth opening.
@@ -176,6 +187,12 @@ class PersonStyle:
     pause_close_after_s: float = 0.0
     rounding: np.ndarray | None = None
     rounding_mean: float = 0.0
+
+    @property
+    def hears_rounding(self) -> bool:
+        """Whether the network's features are the recogniser's posteriors, from which the rounded-vowel share
+        (:func:`nvp.rounding.rounded_share`) is read for :meth:`rounded` and :func:`apply_style`."""
+        return self.feature_kind == "phonemes"
 
     def rounded(self, expression: np.ndarray, share: np.ndarray | None) -> np.ndarray:
         """Expressions ``(T, K_exp)`` with the person's rounding for the rounded share ``share`` ``(T,)``

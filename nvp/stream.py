@@ -109,7 +109,7 @@ class ExpressionStream:
         windows = frame_windows(feats, self.fps, num_frames=n)
         audio_exp, closure = network_outputs(self.net, [windows])
         voice = voice_activity(seg, SAMPLE_RATE, self.fps, n)
-        rounded = None if self.style.rounding is None else rounded_share(windows)
+        rounded = rounded_share(windows) if self.style.hears_rounding else None
         expr = apply_style(
             self.style, audio_exp, closure, voice, opening=opening, fps=self.fps, rounded=rounded
         )[self.done - first : end - first]

@@ -85,9 +85,32 @@ def test_the_share_read_block_by_block_equals_the_whole_file():
     passed = list(rounding_tap(style, (windows[i : i + 5] for i in range(0, 23, 5)), shares))
     assert sum(len(b) for b in passed) == 23
     np.testing.assert_allclose(np.concatenate(shares), rounded_share(windows), atol=1e-6)
-    none: list[np.ndarray] = []
-    list(rounding_tap(dataclasses.replace(style, rounding=None), [windows], none))
+    none: list[np.ndarray] = []  # features that are not the recogniser's: no share to read
+    list(rounding_tap(dataclasses.replace(style, rounding=None, feature_kind="mel"), [windows], none))
     assert none == []
+
+
+def test_rounded_vowels_keep_the_lips_apart_where_the_opening_model_would_close_them():
+    """The opening model's output is low on o / u; where its closing level would close the lips, a rounded
+    vowel keeps them apart by ROUNDED_APART, while the text's p / b / m still seal them."""
+    from nvp.person import ROUNDED_APART, OpeningStyle
+
+    rng = np.random.default_rng(4)
+    k = 16
+    gw = rng.normal(size=k).astype(np.float32)
+    direction = (gw / (gw @ gw)).astype(np.float32)
+    opening = OpeningStyle(gw, 0.0, direction, 1.0, 0.0, 0.0, "0", closed_below=0.0)
+    closed = rng.normal(size=k).astype(np.float32)
+    style = dataclasses.replace(_rounding_style(k), rounding=None, closed_expression=closed, opening=opening)
+    a = rng.normal(size=(4, 8)).astype(np.float32)
+    z = np.full(4, -1.0, np.float32)  # far below the closing level: full blend to the closed mouth
+    share = np.array([0.0, 1 / ROUNDED_APART, 0.25 / ROUNDED_APART, 1.0], np.float32)
+    free = apply_style(dataclasses.replace(style, closed_expression=None), a, None, None, opening=z)
+    out = apply_style(style, a, None, None, opening=z, rounded=share)
+    kept = 1 - np.clip(ROUNDED_APART * share, 0, 1)  # the blend left: 1, 0, 0.75, 0
+    np.testing.assert_allclose(out, free + kept[:, None] * (closed - free), atol=1e-5)
+    text = apply_style(style, a, None, None, opening=z, rounded=share, text_closure=np.ones(4))
+    np.testing.assert_allclose(text, np.broadcast_to(style.sealed_lips(), (4, k)), atol=1e-5)
 
 
 def test_a_person_whose_lips_round_on_rounded_vowels_gets_their_rounding(face_model):

@@ -33,7 +33,8 @@ Metrics (``nvp.metrics``), output next to the real video's own number where one 
   gap|, pauses / speech);
 - lip rounding: correlation of the output's mouth width (corners 61-291) with the real one, and the median
   width on frames where the recogniser hears a rounded vowel (``nvp.rounding.ROUNDED_PHONES``) over that on
-  spread vowels (``SPREAD_PHONES``), mean over videos, the real video's in parentheses;
+  spread vowels (``SPREAD_PHONES``), mean over videos, the real video's in parentheses; and the share of
+  rounded-vowel frames with the mouth at or below the closed level (pooled; rounded lips are parted);
 - jitter ratio (mean |second difference| of the gap, output / real) and the audio-visual offset in frames
   (``nvp.metrics.av_offset`` of the two gaps within ``RESYNC_MAX_LAG``; positive: the output is late), median
   over videos; the synced correlation is the opening correlation at that offset (the shape of the opening
@@ -243,6 +244,8 @@ def evaluate_video(
         "pause_closed": int(np.sum(gap_real[pauses] <= rest_lvl)),
         "pause_resting": resting(gap_real),
         "rounded_width": rounded_narrowing(width_real, rounded, spread),
+        "rounded_frames": int(rounded.sum()),
+        "rounded_closed": int(np.sum(gap_real[rounded] <= closed)),
     }
 
     rows = []
@@ -286,6 +289,7 @@ def evaluate_video(
                 "pause_motion_ratio": pb["pause_motion_ratio"],
                 "width_corr": float(np.corrcoef(width[ok], width_real[ok])[0, 1]) if varies else 0.0,
                 "rounded_width": rounded_narrowing(width, rounded, spread),
+                "rounded_closed": int(np.sum(gap[rounded] <= closed)),
             }
         )
     return real, rows
@@ -315,6 +319,7 @@ def summarise(reals: list[dict], rows: list[dict], key) -> list[dict]:
         rl = [real_by[r["video"]] for r in sel]
         bil = sum(r["bilabial_frames"] for r in rl)
         pf = sum(r["pause_frames"] for r in rl)
+        rf = sum(r["rounded_frames"] for r in rl)
 
         b_out, b_real = pooled(sel, "bilabial_closed", bil), pooled(rl, "bilabial_closed", bil)
         mot_out = np.nanmean([r["pause_motion_ratio"] for r in sel]) if pf else float("nan")
@@ -340,7 +345,8 @@ def summarise(reals: list[dict], rows: list[dict], key) -> list[dict]:
                 "width corr": _f(np.mean([r["width_corr"] for r in sel])),
                 "rounded width (real)": f"{_f(np.nanmean([r['rounded_width'] for r in sel]))} "
                 f"({_f(np.nanmean([r['rounded_width'] for r in rl]))})",
-                "bilabial / pause frames": f"{bil} / {pf}",
+                "rounded closed (real)": _both(sel, rl, "rounded_closed", rf),
+                "bilabial / pause / rounded frames": f"{bil} / {pf} / {rf}",
             }
         )
     return out
