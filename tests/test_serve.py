@@ -10,6 +10,7 @@ import http.client
 import json
 import os
 import random
+import shlex
 import signal
 import socket
 import stat
@@ -482,13 +483,14 @@ def test_claims_are_atomic_and_cancelling_races_are_settled(tmp_path):
     assert store2.get(late.id).state == "queued" and started == []
 
 
-def test_recovery_stops_only_the_jobs_own_leftover_process(tmp_path):
+@pytest.mark.parametrize("entry", ["nvp.app.cli.job", "nvp.app.jobs"])  # the entry and its former name
+def test_recovery_stops_only_the_jobs_own_leftover_process(tmp_path, entry):
     store = JobStore(tmp_path / "jobs.sqlite")
     stranger = subprocess.Popen(
         [sys.executable, "-c", "import time; time.sleep(120)"], start_new_session=True
     )
     mine = subprocess.Popen(
-        [sys.executable, "-c", "import sys, time; time.sleep(120)", "nvp.app.jobs", "job-000000000002"],
+        [sys.executable, "-c", "import sys, time; time.sleep(120)", entry, "job-000000000002"],
         start_new_session=True,
     )
     try:
@@ -510,7 +512,7 @@ def test_a_job_process_cleans_up_after_sigterm(tmp_path):
     code = f"""
 import sys, tempfile, time
 from pathlib import Path
-from nvp.app.jobs import run_command
+from nvp.app.cli.job import run_command
 
 def main(argv):
     try:
@@ -534,6 +536,34 @@ sys.exit(run_command([], main))
     finally:
         proc.kill()
         proc.wait()
+
+
+def test_a_cluster_job_process_stops_when_its_worker_is_gone(tmp_path):
+    """``python -m nvp.app.cli.job cluster <pid> ...`` outlives no worker: a stand-in worker (a shell)
+    starts a job process and exits; the job is interrupted as on Ctrl-C and cleans up. Wrong usage of the
+    entry is one line and exit 2."""
+    bad = subprocess.run([sys.executable, "-m", "nvp.app.cli.job", "job"], capture_output=True, text=True)
+    assert bad.returncode == 2 and bad.stderr.startswith("usage:") and len(bad.stderr.splitlines()) == 1
+    done = tmp_path / "interrupted"
+    job = f"""
+import os, sys, time
+from pathlib import Path
+from nvp.app.cli.job import run_command, stop_without
+
+def main(argv):
+    try:
+        time.sleep(120)
+    except KeyboardInterrupt:
+        Path({str(done)!r}).write_text("cleaned up")
+        return 130
+    return 0
+
+stop_without(os.getppid())
+sys.exit(run_command([], main))
+"""
+    worker = f"{shlex.quote(sys.executable)} -c {shlex.quote(job)} & sleep 2"
+    subprocess.run(["sh", "-c", worker], check=True, timeout=60)
+    assert until(lambda: done.exists() and done.read_text(), "the job to stop", 30) == "cleaned up"
 
 
 def test_say_text_is_never_an_option_and_limits_are_clear(make_client, demo_clip, tmp_path):

@@ -8,7 +8,7 @@ takes one job at a time). The commands that take many inputs then send one job p
 lines, and ``nvp serve --cluster HEAD`` sends the web app's jobs.
 
 A job is the nvp command line a user would type (``dub in.wav --person p/ -o out.mp4``), run on a worker
-as its own process (``python -m nvp.app.cluster job <worker pid> <nvp arguments>``), exactly as the CLI
+as its own process (``python -m nvp.app.cli.job cluster <worker pid> <nvp arguments>``), exactly as the CLI
 runs it: its outputs are written atomically, it resumes (fit, dub) or redoes its part (say, eval) when it
 runs again, and a bad input ends its job with the command's one error line. Inputs and outputs travel
 through a folder every machine sees at the same path (NFS, SMB, ...): paths are made absolute before a
@@ -171,7 +171,7 @@ def run_job(argv: Sequence[str], cwd: str) -> dict[str, Any]:
     from distributed import get_worker
     from distributed.worker import thread_state
 
-    from nvp.app.jobs import follow_stderr
+    from nvp.app.jobs import JOB_MODULE, follow_stderr
 
     worker = get_worker()
     key = getattr(thread_state, "key", "")
@@ -179,7 +179,7 @@ def run_job(argv: Sequence[str], cwd: str) -> dict[str, Any]:
     _emit(worker, "start", key, worker=worker.address, where=where)
     t0 = time.monotonic()
     proc = subprocess.Popen(
-        [sys.executable, "-m", "nvp.app.cluster", "job", str(os.getpid()), *argv],
+        [sys.executable, "-m", JOB_MODULE, "cluster", str(os.getpid()), *argv],
         cwd=cwd,
         stdin=subprocess.DEVNULL,
         stdout=subprocess.PIPE,
@@ -234,20 +234,6 @@ def _stop_process(proc: subprocess.Popen, grace_s: float = GRACE_S) -> None:
             os.killpg(proc.pid, signal.SIGKILL)
         except (ProcessLookupError, PermissionError):
             pass
-
-
-def _job_process(parent: int, argv: list[str]) -> int:
-    """A job's process: nvp's CLI, stopped as on Ctrl-C (its clean-up runs) when the worker ``parent``
-    that started it is gone, so a job never outlives its worker."""
-    from nvp.app.jobs import run_command
-
-    def watch() -> None:
-        while os.getppid() == parent:
-            time.sleep(0.5)
-        os.kill(os.getpid(), signal.SIGTERM)
-
-    threading.Thread(target=watch, daemon=True).start()
-    return run_command(argv)
 
 
 # -- a batch from the command line
@@ -424,18 +410,3 @@ def jobs_of_file(path: Path) -> list[ClusterJob]:
     if not jobs:
         raise NvpError(f"{path} names no job (one nvp command line per line)")
     return jobs
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``python -m nvp.app.cluster job <worker pid> <nvp arguments>``: a job's process on a worker."""
-    argv = sys.argv[1:] if argv is None else argv
-    if len(argv) >= 2 and argv[0] == "job":
-        return _job_process(int(argv[1]), argv[2:])
-    print(
-        "usage: python -m nvp.app.cluster job <worker pid> <nvp arguments> (see nvp cluster)", file=sys.stderr
-    )
-    return 2
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -1,8 +1,8 @@
 """Background jobs of ``nvp serve``: fits and dubs queued in SQLite, run one at a time as ``nvp``
 subprocesses, with progress, cancelling and recovery after a restart.
 
-Each job runs the same command line a user would type (``nvp fit``, ``nvp dub``, ``nvp say``), through
-:func:`run_command` (``python -m nvp.app.jobs <job id> <nvp arguments>``), so it behaves, resumes and fails
+Each job runs the same command line a user would type (``nvp fit``, ``nvp dub``, ``nvp say``) in a process
+of its own (``python -m nvp.app.cli.job serve <job id> <nvp arguments>``), so it behaves, resumes and fails
 exactly like the CLI: its one error line becomes the job's message, and SIGTERM (cancel) interrupts it
 like Ctrl-C, so its temporary files go. Progress comes from the command's progress bars (stage, percent,
 time left).
@@ -43,6 +43,12 @@ ID_PATTERN = re.compile(r"^[a-z]{1,8}-[0-9a-f]{12}$")
 GRACE_S = 20.0
 """Seconds a job has to clean up after SIGTERM before its process group is killed."""
 MAX_MESSAGE = 500
+
+JOB_MODULE = "nvp.app.cli.job"
+"""The module a job's process runs (by name: importing the CLI from here would make a cycle)."""
+JOB_MODULES = {JOB_MODULE.encode(), b"nvp.app.jobs"}
+"""Module names that mark a job's process on its command line (``nvp.app.jobs``: one started by an earlier
+nvp, before the entry point moved, is still recognised and stopped on recovery)."""
 
 
 def new_id(prefix: str) -> str:
@@ -213,7 +219,7 @@ def _runs_job(pid: int, job_id: str) -> bool:
         cmdline = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
     except OSError:
         return False
-    return b"nvp.app.jobs" in cmdline and job_id.encode() in cmdline
+    return bool(JOB_MODULES & set(cmdline)) and job_id.encode() in cmdline
 
 
 def _signal_group(pid: int, sig: int) -> None:
@@ -353,7 +359,7 @@ class Worker(threading.Thread):
             )  # fmt: skip
 
     def _command(self, job: Job) -> list[str]:
-        return [sys.executable, "-m", "nvp.app.jobs", job.id, *job.args]
+        return [sys.executable, "-m", JOB_MODULE, "serve", job.id, *job.args]
 
     def _run(self, job: Job) -> None:
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
@@ -437,21 +443,3 @@ def follow_stderr(
         if not chunk:
             stream.close()
             return last_error
-
-
-def run_command(argv: list[str], main: Callable[[list[str]], int] | None = None) -> int:
-    """A job's process: nvp's CLI (``main``), with SIGTERM turned into the interrupt the CLI cleans up
-    after (temporary files, writers); a second SIGTERM during that clean-up is ignored."""
-
-    def interrupt(signum, frame) -> None:
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
-        raise KeyboardInterrupt
-
-    signal.signal(signal.SIGTERM, interrupt)
-    if main is None:
-        from nvp.app.cli import main
-    return main(argv)
-
-
-if __name__ == "__main__":  # python -m nvp.app.jobs <job id> <nvp arguments>: the id names the process
-    raise SystemExit(run_command(sys.argv[2:]))
