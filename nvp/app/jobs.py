@@ -229,10 +229,29 @@ def _signal_group(pid: int, sig: int) -> None:
         pass
 
 
-class Worker(threading.Thread):
-    """Runs the queued jobs one after the other (the CPU is shared: one heavy job at a time).
+class JobRunner(threading.Thread):
+    """What runs the queue's jobs (:class:`Worker` here, :class:`nvp.app.serve_cluster.ClusterWorker` on a
+    cluster): ``wake`` when a job is queued, ``stopping`` to end, and ``on_done(job)`` called with every job
+    that ended (done, failed, or cancelled, queued or running)."""
 
-    ``on_done(job)`` is called with every job that ended (done, failed, or cancelled, queued or running)."""
+    def __init__(self, store: JobStore, cwd: Path, on_done: Callable[[Job], None] | None, name: str) -> None:
+        super().__init__(daemon=True, name=name)
+        self.store, self.cwd, self.on_done = store, cwd, on_done
+        self.wake = threading.Event()
+        self.stopping = threading.Event()
+        self._lock = threading.Lock()
+
+    def _ended(self, job: Job) -> None:
+        if self.on_done is None:
+            return
+        try:
+            self.on_done(job)
+        except Exception:
+            logger.exception("cleaning up after job %s", job.id)
+
+
+class Worker(JobRunner):
+    """Runs the queued jobs one after the other here (the CPU is shared: one heavy job at a time)."""
 
     def __init__(
         self,
@@ -241,11 +260,8 @@ class Worker(threading.Thread):
         on_done: Callable[[Job], None] | None = None,
         grace_s: float = GRACE_S,
     ) -> None:
-        super().__init__(daemon=True, name="nvp-jobs")
-        self.store, self.cwd, self.on_done, self.grace_s = store, cwd, on_done, grace_s
-        self.wake = threading.Event()
-        self.stopping = threading.Event()
-        self._lock = threading.Lock()  # guards _proc, _current, _cancelled
+        super().__init__(store, cwd, on_done, "nvp-jobs")
+        self.grace_s = grace_s  # self._lock guards _proc, _current, _cancelled
         self._proc: subprocess.Popen | None = None
         self._current: str | None = None
         self._cancelled: set[str] = set()
@@ -338,14 +354,6 @@ class Worker(threading.Thread):
             ended = self.store.get(job.id)
             if ended is not None and ended.state != "running":
                 self._ended(ended)
-
-    def _ended(self, job: Job) -> None:
-        if self.on_done is None:
-            return
-        try:
-            self.on_done(job)
-        except Exception:
-            logger.exception("cleaning up after job %s", job.id)
 
     def _end(self, job_id: str, state: str, message: str = "", **fields) -> bool:
         """Write a job's end while it is still running (a cancel or a restart's requeue wins)."""

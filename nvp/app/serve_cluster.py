@@ -4,13 +4,13 @@ instead of in the server's own worker thread."""
 from __future__ import annotations
 
 import logging
-import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from nvp.app.cluster import TOPIC, ClusterJob, connect, failure_text, run_job
+from nvp.app.jobs import JobRunner
 
 if TYPE_CHECKING:
     from nvp.app.jobs import Job, JobStore
@@ -18,7 +18,7 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 
-class ClusterWorker(threading.Thread):
+class ClusterWorker(JobRunner):
     """``nvp serve --cluster HEAD``: the job queue's runner that sends each queued job to the cluster
     instead of running it here (same interface as :class:`nvp.app.jobs.Worker`).
 
@@ -35,11 +35,8 @@ class ClusterWorker(threading.Thread):
         address: str,
         on_done: Callable[[Job], None] | None = None,
     ) -> None:
-        super().__init__(daemon=True, name="nvp-cluster-jobs")
-        self.store, self.cwd, self.address, self.on_done = store, cwd, address, on_done
-        self.wake = threading.Event()
-        self.stopping = threading.Event()
-        self._lock = threading.Lock()
+        super().__init__(store, cwd, on_done, "nvp-cluster-jobs")
+        self.address = address
         self._futures: dict[str, Any] = {}  # job id → future
         self._keys: dict[str, str] = {}  # task key → job id
         self._where: dict[str, tuple[str, str]] = {}  # job id → (worker address, description)
@@ -77,14 +74,6 @@ class ClusterWorker(threading.Thread):
         self.wake.set()
         if wait and self.is_alive():
             self.join(wait)
-
-    def _ended(self, job: Job) -> None:
-        if self.on_done is None:
-            return
-        try:
-            self.on_done(job)
-        except Exception:
-            log.exception("cleaning up after job %s", job.id)
 
     def _event(self, event) -> None:
         _, msg = event
