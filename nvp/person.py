@@ -219,7 +219,8 @@ def predict_expressions(
     (:func:`apply_style`); frames without voice (see :func:`nvp.vad.voice_activity`, a voice-activity
     detector) blend smoothly towards the person's rest expression, so pauses, silence, noise and music give
     a resting mouth. ``transcript``: ``(text, language)`` of what the audio says (an espeak-ng language,
-    :mod:`nvp.transcript`): its p, b and m close the lips where they are aligned.
+    :mod:`nvp.transcript`): its p, b and m close the lips where they are aligned, its rounded vowels round
+    them (as a rounded-vowel share of 1, :func:`nvp.transcript.rounded_weights`).
     """
     from nvp.vad import voice_activity
     from nvp.windows import iter_frame_windows
@@ -239,10 +240,12 @@ def predict_expressions(
     voice = voice_activity(audio, sample_rate, fps, len(audio_exp))
     text_closure = None
     if transcript is not None:
-        from nvp.transcript import align_transcript, bilabial_weights
+        from nvp.transcript import align_transcript, bilabial_weights, rounded_weights
 
         alignment = align_transcript(transcript[0], audio, sample_rate, transcript[1], posteriors)
         text_closure = bilabial_weights(alignment, fps, len(audio_exp))
+        if rounded is not None:  # the text's rounded vowels round the lips and keep them apart
+            rounded = np.maximum(rounded, rounded_weights(alignment, fps, len(audio_exp)))
     return apply_style(
         style, audio_exp, closure, voice, opening=z, text_closure=text_closure, fps=fps, rounded=rounded
     )

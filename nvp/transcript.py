@@ -7,7 +7,7 @@ ships inside the ``piper-tts`` wheel of the optional ``tts`` extra: 118 language
 phonemes are aligned to the audio by a CTC forced alignment (Viterbi) against the phoneme recogniser's
 log-posteriors (:func:`nvp.audio_features.extract_features`, ``"phonemes"``: an IPA phone set of many
 languages), and each aligned bilabial becomes a span of video frames where the lips close
-(:func:`bilabial_weights`).
+(:func:`bilabial_weights`), each rounded vowel one where they round (:func:`rounded_weights`).
 """
 
 from __future__ import annotations
@@ -30,6 +30,11 @@ CLOSE_BEFORE_S = 0.08
 release (the burst after the closure); a p/b closure lasts about 50-100 ms, an m's is the nasal itself."""
 CLOSE_AFTER_S = 0.02
 """How long after a bilabial's aligned span the lips stay closed."""
+ROUND_BEFORE_S = 0.06
+"""How long before a rounded vowel's aligned span the lips are already rounded: rounding is anticipated
+(it spreads onto the consonants before the vowel, 100 ms and more in English and French), the recogniser
+marks the vowel itself."""
+
 IGNORED = frozenset("ˈˌ.,;:!?-—–'\"()[]…¡¿ \t\n")
 """espeak-ng output that is no phone: stress marks, punctuation, spaces."""
 NON_PHONES = ("<pad>", "<sos>", "<eos>", "<unk>", " ", "%", ",", "<wb>", "<blank>")
@@ -167,14 +172,35 @@ def align_transcript(
     )
 
 
-def bilabial_weights(alignment: PhonemeAlignment, fps: float, num_frames: int) -> np.ndarray:
+def phone_weights(
+    alignment: PhonemeAlignment,
+    fps: float,
+    num_frames: int,
+    phones: frozenset[str] | tuple[str, ...],
+    before_s: float,
+    after_s: float,
+) -> np.ndarray:
     """``(T,)`` float32 in [0, 1]: 1 on the video frames (frame ``i`` covers ``[i, i + 1) / fps`` s) that
-    overlap a bilabial's closure — its aligned span widened by :data:`CLOSE_BEFORE_S` before and
-    :data:`CLOSE_AFTER_S` after — and 0 elsewhere."""
+    overlap the aligned span of one of ``phones``, widened by ``before_s`` before and ``after_s`` after, and
+    0 elsewhere."""
     w = np.zeros(num_frames, np.float32)
     for name, a, b in zip(alignment.phonemes, alignment.start, alignment.end, strict=True):
-        if name in BILABIALS:
-            first = int(np.floor(max(a - CLOSE_BEFORE_S, 0.0) * fps))
-            last = int(np.ceil((b + CLOSE_AFTER_S) * fps)) - 1
+        if name in phones:
+            first = int(np.floor(max(a - before_s, 0.0) * fps))
+            last = int(np.ceil((b + after_s) * fps)) - 1
             w[max(first, 0) : min(last + 1, num_frames)] = 1.0
     return w
+
+
+def bilabial_weights(alignment: PhonemeAlignment, fps: float, num_frames: int) -> np.ndarray:
+    """:func:`phone_weights` of the bilabials' closures: their aligned spans widened by
+    :data:`CLOSE_BEFORE_S` before and :data:`CLOSE_AFTER_S` after."""
+    return phone_weights(alignment, fps, num_frames, BILABIALS, CLOSE_BEFORE_S, CLOSE_AFTER_S)
+
+
+def rounded_weights(alignment: PhonemeAlignment, fps: float, num_frames: int) -> np.ndarray:
+    """:func:`phone_weights` of the rounded vowels and glides (:data:`nvp.rounding.ROUNDED_PHONES`): their
+    aligned spans from :data:`ROUND_BEFORE_S` before."""
+    from nvp.rounding import ROUNDED_PHONES
+
+    return phone_weights(alignment, fps, num_frames, ROUNDED_PHONES, ROUND_BEFORE_S, 0.0)

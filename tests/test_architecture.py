@@ -167,7 +167,8 @@ def import_cycles(modules: list[str]) -> list[list[str]]:
 
 
 def test_no_import_cycle():
-    """Not even on the roof: the job runners start the CLI by module name (nvp.app.cli.job), never import it."""
+    """Not even on the roof: the job runners start the CLI by module name (nvp.app.cli.job), never import
+    it."""
     assert not import_cycles(sorted(all_modules()))
 
 

@@ -148,3 +148,30 @@ def test_a_person_whose_lips_round_on_rounded_vowels_gets_their_rounding(face_mo
         ).rounding
         is None
     )
+
+
+def test_a_transcripts_rounded_vowels_round_the_lips_where_they_are_aligned(monkeypatch):
+    """``nvp dub --transcript`` / ``nvp say``: frames the text's rounded vowels are aligned to get a rounded
+    share of 1 (the audio's share elsewhere): the mouth moves along the person's rounding there, and only
+    there."""
+    import nvp.transcript as transcript
+    from nvp.app.demo_voice import speech_script, synth_voice
+    from nvp.person import predict_expressions
+
+    net = Audio2ExpressionNet(Audio2ExpConfig(feature_dim=D)).eval()
+    rng = np.random.default_rng(5)
+    pm = PersonMap(rng.normal(size=(16, net.cfg.audio_exp_dim)).astype(np.float32), np.zeros(16, np.float32))
+    style = dataclasses.replace(_rounding_style(), person_map=pm)
+    audio = synth_voice(speech_script(2.0, rng), 2.0, rng)  # voiced, so the mouth is not at rest
+    aligned = transcript.PhonemeAlignment(
+        ("b", "u", "t"), np.array([0.5, 1.0, 1.5]), np.array([0.6, 1.2, 1.6])
+    )
+    monkeypatch.setattr(transcript, "align_transcript", lambda *a, **k: aligned)
+    plain = predict_expressions(audio, 16000, 25.0, style, net)
+    text = predict_expressions(audio, 16000, 25.0, style, net, transcript=("boot", "en-us"))
+    moved = np.flatnonzero(np.abs(text - plain).max(1) > 1e-6)
+    assert set(moved) <= set(range(23, 30)) and len(moved) >= 4  # u: 1.0-1.2 s from 0.94 s: frames 23-29
+    d = (text - plain)[moved]  # along the rounding, never against it
+    coeff = d @ style.rounding / (style.rounding @ style.rounding)
+    np.testing.assert_allclose(d, coeff[:, None] * style.rounding, atol=1e-5)
+    assert np.all(coeff > 0)

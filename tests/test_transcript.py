@@ -11,6 +11,7 @@ from nvp.transcript import (
     bilabial_weights,
     ctc_align,
     phoneme_tokens,
+    rounded_weights,
     text_phonemes,
 )
 
@@ -61,6 +62,18 @@ def test_bilabials_close_the_frames_around_them():
     # m: 0.40-0.44 s, closed from 0.32 s (frame 8) to 0.46 s (frame 11); b: 0.82-0.94 s, frames 20-23
     np.testing.assert_array_equal(np.flatnonzero(w), [8, 9, 10, 11, 20, 21, 22, 23])
     assert w.dtype == np.float32 and w.max() == 1
+
+
+def test_rounded_vowels_round_the_frames_from_a_little_before_them():
+    al = PhonemeAlignment(
+        ("b", "u", "t", "ɔ", "i", "w"),
+        np.array([0.0, 0.10, 0.30, 0.50, 0.70, 0.90]),
+        np.array([0.08, 0.20, 0.36, 0.58, 0.80, 0.98]),
+    )
+    w = rounded_weights(al, 25.0, 30)
+    # u 0.10-0.20 s, rounded from 0.04 s: frames 1-4; ɔ 0.50-0.58 from 0.44: 11-14; w 0.90-0.98: 21-24
+    np.testing.assert_array_equal(np.flatnonzero(w), [1, 2, 3, 4, 11, 12, 13, 14, 21, 22, 23, 24])
+    assert not np.any(bilabial_weights(al, 25.0, 30)[5:])  # b only: 0-0.1 s
 
 
 def test_text_becomes_phonemes_in_several_languages():

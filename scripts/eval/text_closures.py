@@ -15,6 +15,10 @@ recogniser hears p, b or m in the speech (posteriors >= 0.5; from the audio, not
 counts as closed when the predicted inner-lip gap is at or below the person's closed level (of their own
 tracked footage) at some frame from ``BILABIAL_LEAD_S`` before it to it. The real footage's own rate (test
 people, ``scripts/eval/lipsync.py``) is the reference: 0.71 pooled, 0.77-0.86 on longer English footage.
+Rounding, the same way: the frames where the recogniser hears a rounded (spread) vowel in the speech, the
+share of rounded ones with the mouth at or below the closed level and the median mouth width on rounded over
+spread ones (``scripts/eval/lipsync.py``; real footage 0.95 English, 0.87-0.91 Cantonese, Italian,
+Portuguese).
 """
 
 from __future__ import annotations
@@ -41,8 +45,10 @@ from nvp.metrics import (
 )
 from nvp.opening import default_opening_model
 from nvp.person import predict_expressions, style_from_sample, voiced_frames
+from nvp.rounding import rounded_classes
 from nvp.tts import synthesize
 from scripts.common import ROOT, SHARED
+from scripts.eval.lipsync import rounded_narrowing, spread_classes
 
 ASSETS = ROOT / "nvp" / "assets"
 SR = 16000
@@ -111,13 +117,25 @@ def main(argv: list[str] | None = None) -> int:
             n = int(np.ceil(len(audio) / SR * fps))
             post = extract_features(audio, SR, kind="phonemes")
             bil = bilabial_frames(post.values, bil_idx, post.rate, fps, n)
-            row = {"video": name, "text": key, "bilabial_frames": int(bil.sum())}
+            rnd = bilabial_frames(post.values, rounded_classes(), post.rate, fps, n)
+            spr = bilabial_frames(post.values, spread_classes(), post.rate, fps, n)
+            row = {
+                "video": name,
+                "text": key,
+                "bilabial_frames": int(bil.sum()),
+                "rounded_frames": int(rnd.sum()),
+            }
             for with_text in (False, True):
                 transcript = (TEXTS[key][1], language) if with_text else None
                 expr = predict_expressions(audio, SR, fps, style, net, num_frames=n, transcript=transcript)
                 gap = model.inner_lip_gap(seq.identity, expr)
                 rate = bilabial_closure_rate(gap, bil, closed, lead)
-                row["with text" if with_text else "audio only"] = int(round(rate * bil.sum()))
+                how = "with text" if with_text else "audio only"
+                row[how] = int(round(rate * bil.sum()))
+                row[f"rounded closed, {how}"] = int(np.sum(gap[rnd] <= closed))
+                row[f"rounded width, {how}"] = rounded_narrowing(
+                    model.mouth_width(seq.identity, expr), rnd, spr
+                )
             rows.append(row)
             print(f"{name} {key}: {row}", flush=True)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -136,6 +154,19 @@ def main(argv: list[str] | None = None) -> int:
                 "worst person, audio only → with text": "{:.2f} → {:.2f}".format(
                     min(r["audio only"] / r["bilabial_frames"] for r in sel if r["bilabial_frames"]),
                     min(r["with text"] / r["bilabial_frames"] for r in sel if r["bilabial_frames"]),
+                ),
+                "rounded-vowel frames": (rf := sum(r["rounded_frames"] for r in sel)),
+                "rounded closed, audio only → with text": "{:.2f} → {:.2f}".format(
+                    *(
+                        sum(r[f"rounded closed, {h}"] for r in sel) / max(rf, 1)
+                        for h in ("audio only", "with text")
+                    )
+                ),
+                "width rounded / spread, audio only → with text": "{:.3f} → {:.3f}".format(
+                    *(
+                        np.nanmean([r[f"rounded width, {h}"] for r in sel])
+                        for h in ("audio only", "with text")
+                    )
                 ),
             }
         )
