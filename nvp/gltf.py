@@ -24,6 +24,10 @@ CM_TO_GLTF = np.array([0.01, -0.01, -0.01], np.float32)
 """Face-model camera frame (cm; x right, y down, z away) → glTF (m; x right, y up, z towards the viewer)."""
 
 
+EYE_NODES = ("eye_left", "eye_right")
+"""Names of the two eye nodes whose rotations carry the gaze."""
+
+
 @dataclass(frozen=True)
 class MorphAnimation:
     """A mesh animated by morph targets.
@@ -36,6 +40,10 @@ class MorphAnimation:
         fps: keyframes per second (keyframe ``j`` at ``j / fps`` s).
         target_names: ``K`` names.
         info: provenance, stored as the file's ``asset.extras``.
+        eyes: ``(2, 3)`` float32 rotation centres of the left and right eye (glTF frame), None: no eyes.
+        gaze: ``(T, 2)`` float32 yaw and pitch (radians, :mod:`nvp.gaze`) of both eyes at each keyframe,
+            written as the rotations of two nodes ``eye_left`` / ``eye_right`` (children of the face) that
+            a rig can bind its eyeballs to.
     """
 
     base: np.ndarray
@@ -45,6 +53,8 @@ class MorphAnimation:
     fps: float
     target_names: tuple[str, ...]
     info: dict
+    eyes: np.ndarray | None = None
+    gaze: np.ndarray | None = None
 
     def vertices(self, frame: int) -> np.ndarray:
         """``(V, 3)`` vertices of keyframe ``frame``."""
@@ -58,11 +68,14 @@ def face_animation(
     expression: np.ndarray,
     fps: float,
     info: dict,
+    eyes: np.ndarray | None = None,
+    gaze: np.ndarray | None = None,
 ) -> MorphAnimation:
     """The animation of face-model ``expression`` ``(T, K_exp)`` on the neutral face ``template``
     ``(V, 3)`` (face-model frame, cm; e.g. ``FaceModel.vertices(identity)``), morph targets from
     ``exp_basis`` ``(K_exp, V, 3)``; ``triangles`` ``(F, 3)`` (the turn about X keeps them
-    counter-clockwise seen from the front, as glTF wants)."""
+    counter-clockwise seen from the front, as glTF wants); ``eyes`` ``(2, 3)`` the eyes' rotation centres
+    (face-model frame, :func:`nvp.gaze.eye_centres`) and ``gaze`` ``(T, 2)`` their yaw and pitch."""
     return MorphAnimation(
         base=(template * CM_TO_GLTF).astype(np.float32),
         targets=(exp_basis * CM_TO_GLTF).astype(np.float32),
@@ -71,6 +84,8 @@ def face_animation(
         fps=float(fps),
         target_names=tuple(f"expression_{k:02d}" for k in range(exp_basis.shape[0])),
         info=info,
+        eyes=None if eyes is None else (np.asarray(eyes) * CM_TO_GLTF).astype(np.float32),
+        gaze=None if gaze is None else np.asarray(gaze, np.float32),
     )
 
 
@@ -114,12 +129,25 @@ def write_glb(anim: MorphAnimation, path: Path) -> Path:
     morphs = [{"POSITION": add(d, g.VEC3, g.FLOAT, g.ARRAY_BUFFER, True)} for d in anim.targets]
     key_in = add(times.reshape(-1, 1), g.SCALAR, g.FLOAT, None, True)
     key_out = add(anim.weights.reshape(-1, 1), g.SCALAR, g.FLOAT, None, False)
+    samplers = [g.AnimationSampler(input=key_in, output=key_out, interpolation="LINEAR")]
+    channels = [g.AnimationChannel(sampler=0, target=g.AnimationChannelTarget(node=0, path="weights"))]
+    nodes = [g.Node(mesh=0, name="face")]
+    if anim.eyes is not None and anim.gaze is not None:
+        from nvp.gaze import gaze_quaternions
+
+        turn = add(gaze_quaternions(anim.gaze), g.VEC4, g.FLOAT, None, False)
+        samplers.append(g.AnimationSampler(input=key_in, output=turn, interpolation="LINEAR"))
+        for name, centre in zip(EYE_NODES, anim.eyes, strict=True):
+            nodes[0].children.append(len(nodes))
+            nodes.append(g.Node(name=name, translation=[float(c) for c in centre]))
+            target = g.AnimationChannelTarget(node=len(nodes) - 1, path="rotation")
+            channels.append(g.AnimationChannel(sampler=1, target=target))
     blob = b"".join(blobs)
     gltf = g.GLTF2(
         asset=g.Asset(version="2.0", generator="nvp", extras=anim.info),
         scene=0,
         scenes=[g.Scene(nodes=[0])],
-        nodes=[g.Node(mesh=0, name="face")],
+        nodes=nodes,
         meshes=[
             g.Mesh(
                 name="face",
@@ -132,15 +160,7 @@ def write_glb(anim: MorphAnimation, path: Path) -> Path:
                 extras={"targetNames": list(anim.target_names)},
             )
         ],
-        animations=[
-            g.Animation(
-                name="speech",
-                samplers=[g.AnimationSampler(input=key_in, output=key_out, interpolation="LINEAR")],
-                channels=[
-                    g.AnimationChannel(sampler=0, target=g.AnimationChannelTarget(node=0, path="weights"))
-                ],
-            )
-        ],
+        animations=[g.Animation(name="speech", samplers=samplers, channels=channels)],
         buffers=[g.Buffer(byteLength=len(blob))],
         bufferViews=views,
         accessors=accessors,
@@ -164,7 +184,7 @@ def read_glb(path: Path) -> MorphAnimation:
         raise FormatError(f"{path} holds no animated mesh")
     blob = gltf.binary_blob()
     sizes = {g.FLOAT: np.float32, g.UNSIGNED_INT: np.uint32, g.UNSIGNED_SHORT: np.uint16}
-    width = {g.SCALAR: 1, g.VEC3: 3}
+    width = {g.SCALAR: 1, g.VEC3: 3, g.VEC4: 4}
 
     def read(i: int) -> np.ndarray:
         acc = gltf.accessors[i]
@@ -180,6 +200,14 @@ def read_glb(path: Path) -> MorphAnimation:
     weights = read(sampler.output).reshape(len(times), len(targets))
     fps = 1.0 / float(np.median(np.diff(times))) if len(times) > 1 else float("nan")
     names = (gltf.meshes[0].extras or {}).get("targetNames", [f"target_{i}" for i in range(len(targets))])
+    eyes, gaze = None, None
+    found = {n.name: i for i, n in enumerate(gltf.nodes) if n.name in EYE_NODES}
+    turns = {c.target.node: c.sampler for c in gltf.animations[0].channels if c.target.path == "rotation"}
+    if set(found) == set(EYE_NODES) and all(found[n] in turns for n in EYE_NODES):
+        from nvp.gaze import gaze_direction
+
+        eyes = np.array([gltf.nodes[found[n]].translation for n in EYE_NODES], np.float32)
+        gaze = gaze_direction(read(gltf.animations[0].samplers[turns[found[EYE_NODES[0]]]].output))
     return MorphAnimation(
         base=read(prim.attributes.POSITION).astype(np.float32),
         targets=targets.astype(np.float32),
@@ -188,4 +216,6 @@ def read_glb(path: Path) -> MorphAnimation:
         fps=fps,
         target_names=tuple(names),
         info=dict(gltf.asset.extras or {}),
+        eyes=eyes,
+        gaze=gaze,
     )

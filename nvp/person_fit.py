@@ -21,6 +21,7 @@ from nvp.face_model import FaceModel
 from nvp.metrics import closed_level
 from nvp.person_style import OpeningStyle, PersonStyle, VideoSample
 from nvp.rounding import is_recogniser_output, rounded_share, rounding_direction
+from nvp.upper_face import learn_upper_face
 
 if TYPE_CHECKING:
     from nvp.opening import OpeningModel
@@ -256,7 +257,9 @@ def style_from_sample(
       hears (:func:`nvp.rounding.rounding_direction` on their speaking frames, or every frame without
       ``voiced``, of what the person map and opening leave unexplained; none on fewer than 25 such frames).
       Measured on the validation people (5 folds): mouth-width correlation 0.276 → 0.295, width on rounded /
-      spread vowels 0.965 → 0.950 (real 0.959), opening correlation and closure F1 unchanged.
+      spread vowels 0.965 → 0.950 (real 0.959), opening correlation and closure F1 unchanged;
+    * upper face: their blinks (how, how often, how long) and brows (how they move, their range) for
+      animations from audio alone (:func:`nvp.upper_face.learn_upper_face`).
     """
     ok = sample.valid
     identity = sample.tracked.identity
@@ -321,4 +324,10 @@ def style_from_sample(
         pause_open,
         close_after,
         *(rounding or (None, 0.0)),
+        learn_upper_face(
+            model.vertices(identity, expression)[:, model.landmark_vertices],
+            expression,
+            ok[ok],
+            sample.tracked.fps,
+        ),
     )

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -17,16 +16,15 @@ from nvp.audio2exp import (
     PersonMap,
 )
 from nvp.tracked import TrackedSequence
+from nvp.upper_face import UpperFace
 
-if TYPE_CHECKING:
-    pass
-
-FORMAT_VERSION = 7
+FORMAT_VERSION = 8
 """2: the person's closed mouth (``closed``) for the network's closure head; 3: the opening calibration
 (:class:`OpeningStyle`); 4: the opening model corrected for the person (``OpeningStyle.adapted_weight``);
 5: where the opening model's output closes their lips (``OpeningStyle.closed_below``); 6: how they hold the
 mouth in pauses over time (``PersonStyle.pause_open`` / ``pause_close_after_s``); 7: how their lips round
-(``PersonStyle.rounding``). Older files load without them."""
+(``PersonStyle.rounding``); 8: their blinks and brows (``PersonStyle.upper_face``). Older files load without
+them."""
 
 
 CLOSING_RAMP = (0.1, 0.5)
@@ -174,6 +172,8 @@ class PersonStyle:
             recogniser's rounded-vowel share above :attr:`rounding_mean` (:mod:`nvp.rounding`; it leaves
             the opening unchanged); None: no rounding beyond what the person map does.
         rounding_mean: the rounded share's mean over the person's speech.
+        upper_face: their blinks and brows (:class:`nvp.upper_face.UpperFace`), for animations from audio
+            alone; None: the upper face moves only as the person map moves it.
     """
 
     person_map: PersonMap
@@ -187,6 +187,7 @@ class PersonStyle:
     pause_close_after_s: float = 0.0
     rounding: np.ndarray | None = None
     rounding_mean: float = 0.0
+    upper_face: UpperFace | None = None
 
     @property
     def hears_rounding(self) -> bool:
@@ -257,6 +258,11 @@ class PersonStyle:
         if self.rounding is not None:
             arrays["rounding"] = self.rounding
             fields["rounding_mean"] = self.rounding_mean
+        if self.upper_face is not None:
+            up = self.upper_face
+            arrays |= {f"upper_{k}": getattr(up, k) for k in ("blink", "brow") if getattr(up, k) is not None}
+            keys = ("blinks_per_min", "blink_s", "brow_low", "brow_rest", "brow_high")
+            fields["upper_face"] = {k: getattr(up, k) for k in keys}
         return save_artifact(path, "person_map", FORMAT_VERSION, arrays, fields)
 
     @classmethod
@@ -284,6 +290,9 @@ class PersonStyle:
             float(m.get("pause_close_after_s", 0.0)),
             a.get("rounding"),
             float(m.get("rounding_mean", 0.0)),
+            UpperFace(a.get("upper_blink"), brow=a.get("upper_brow"), **m["upper_face"])
+            if "upper_face" in m
+            else None,
         )
 
 
@@ -293,8 +302,9 @@ def transferred_style(own: PersonStyle, other: PersonStyle) -> PersonStyle:
     ``other``'s person map, closures and rounding decide how the mouth moves (how wide it opens, how often
     it closes, how it rounds, its asymmetries in motion), as offsets from their closed lips, put onto
     ``own``'s closed lips: ``e = e_other + (closed_own - closed_other)``, so a closure of ``other`` closes
-    ``own``'s lips exactly; in pauses the mouth rests as ``own``'s does. Styles without a closed mouth
-    (format 1) are anchored at their rest mouths instead. The two styles must come from the same network.
+    ``own``'s lips exactly; in pauses the mouth rests as ``own``'s does, and the eyes and brows are
+    ``own``'s. Styles without a closed mouth (format 1) are anchored at their rest mouths instead. The two
+    styles must come from the same network.
     """
     from nvp.errors import NvpError
 
@@ -320,4 +330,5 @@ def transferred_style(own: PersonStyle, other: PersonStyle) -> PersonStyle:
         own.pause_close_after_s,
         other.rounding,
         other.rounding_mean,
+        own.upper_face,  # the eyes and brows stay the face's own, as a dub keeps them from its footage
     )

@@ -471,6 +471,21 @@ def test_predict_exports_a_gltf_animation_that_reads_back_and_renders(bundle, tm
                 gl.rasterize(c + [0, 0, 40], f, np.zeros((len(c), 2)), 150.0, [48, 48]).mask for c in cam
             ]
             assert masks[0].sum() > 1000 and bool((masks[0] == masks[1]).all())
+    # the eyes: two nodes under the face, behind the eye openings, looking ahead ("camera", the default)
+    assert [n.name for n in g.nodes] == ["face", "eye_left", "eye_right"] and g.nodes[0].children == [1, 2]
+    assert anim.eyes[0, 0] > 0 > anim.eyes[1, 0] and np.all(anim.eyes[:, 2] < anim.base[:, 2].max())
+    np.testing.assert_allclose(anim.gaze, 0, atol=1e-6)
+    # ... or where a gaze file says, interpolated between its samples
+    gaze = tmp_path / "gaze.csv"
+    gaze.write_text("time_s,yaw_deg,pitch_deg\n0.0,0,0\n1.0,20,-10\n")
+    proc = nvp("predict", wav, "--style", bundle, "--fps", 30, "--export", glb, "--gaze", gaze)
+    assert proc.returncode == 0, proc.stderr
+    looked = np.degrees(read_glb(glb).gaze)
+    np.testing.assert_allclose(looked[[0, 15, 30, 35]], [[0, 0], [10, -5], [20, -10], [20, -10]], atol=1e-3)
+    gaze.write_text("time_s,yaw_deg\n0,0\n")
+    assert_one_line_error(
+        nvp("predict", wav, "--style", bundle, "--export", glb, "--gaze", gaze), "pitch_deg"
+    )
     assert_one_line_error(nvp("predict", wav, "--style", bundle, "--export", tmp_path / "a.gltf"), ".glb")
     assert_one_line_error(nvp("predict", wav, "--style", bundle), "--export")
 

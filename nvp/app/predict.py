@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 from pathlib import Path
 
 import numpy as np
@@ -12,9 +13,12 @@ from nvp.audio2exp import default_audio2exp
 from nvp.bundle import PersonBundle, check_output_place
 from nvp.errors import NvpError
 from nvp.face_model import default_face_model
+from nvp.gaze import read_gaze_file
 from nvp.media import read_audio
 from nvp.person import predict_expressions
 from nvp.tracked import TrackedSequence
+from nvp.upper_face import upper_face_motion
+from nvp.vad import voice_activity
 
 
 def predict(
@@ -24,11 +28,17 @@ def predict(
     mesh: Path | None = None,
     output: Path | None = None,
     export: Path | None = None,
+    gaze: str | Path = "camera",
 ) -> tuple[int, str, list[Path]]:
     """Predict the expressions of the person of ``style_path`` (a person bundle folder or a person-map
     ``.json``) for ``audio`` at ``fps``; write them to ``output`` (``.npz``: expression, and vertices and
     triangles when a face is known) and/or ``export`` (a glTF 2.0 ``.glb`` animation). The face is
     ``mesh``'s (a tracked sequence folder), else the bundle's, else the face model's mean face.
+
+    The upper face, which audio does not decide, moves as the person's does in their footage when the style
+    knows it (their blinks at their rate, their brows with the speech's emphasis:
+    :func:`nvp.upper_face.upper_face_motion`, the same blinks for the same audio); the export's two eye
+    nodes look as ``gaze`` asks (``"camera"`` or a gaze file, :mod:`nvp.gaze`).
 
     Returns the number of frames, whose face it is and the files written.
     """
@@ -57,8 +67,15 @@ def predict(
     if track is not None:
         identity, whose = TrackedSequence.load(Path(track)).identity, f"the face of {track}"
     face_given = track is not None or style_path.is_dir()
+    gaze_file = None if str(gaze) == "camera" else Path(gaze)
+    if gaze_file is not None:
+        read_gaze_file(gaze_file)  # a bad file is refused before any work
     samples = read_audio(audio, 16000)
     expr = predict_expressions(samples, 16000, fps, style, net)
+    if style.upper_face is not None:
+        voice = voice_activity(samples, 16000, fps, len(expr))
+        seed = int.from_bytes(hashlib.sha256(samples.tobytes()).digest()[:4], "little")
+        expr = expr + upper_face_motion(style.upper_face, samples, 16000, voice, fps, seed)
     if output is not None:
         out = {"expression": expr.astype(np.float32), "fps": np.float32(fps)}
         if face_given:
@@ -67,7 +84,11 @@ def predict(
         with atomic_path(outputs[0]) as tmp:
             np.savez_compressed(tmp, **out)
     if export is not None:
+        from nvp.gaze import eye_centres, gaze_track
         from nvp.gltf import face_animation, write_glb
+
+        face = model.vertices(identity)
+        loops = tuple(model.landmark_vertices[model.landmark_groups[k]] for k in ("left_eye", "right_eye"))
 
         info = {
             "nvp": "audio-driven face animation (Neural Voice Puppetry)",
@@ -78,7 +99,16 @@ def predict(
             "style": str(style.info.get("video", style_path)),
         }
         write_glb(
-            face_animation(model.vertices(identity), model.exp_basis, model.triangles, expr, fps, info),
+            face_animation(
+                face,
+                model.exp_basis,
+                model.triangles,
+                expr,
+                fps,
+                info,
+                eye_centres(face, loops),
+                gaze_track(gaze, len(expr), fps),
+            ),
             outputs[-1],
         )
     return len(expr), whose, outputs

@@ -24,12 +24,21 @@ def add_parser(sub) -> None:
     )
     p.add_argument("-o", "--output", type=Path, help="output .npz (expression; vertices with a face)")
     p.add_argument("--export", type=Path, help="output glTF 2.0 animation (.glb): morph targets + weights")
+    p.add_argument(
+        "--gaze",
+        default="camera",
+        metavar="camera|FILE",
+        help="where the export's eyes look: camera (straight ahead, the default) or a CSV / JSON file of "
+        "time_s, yaw_deg, pitch_deg rows (see docs/commands.md)",
+    )
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from nvp.app.predict import predict
 
-    frames, whose, outputs = predict(args.audio, args.style, args.fps, args.mesh, args.output, args.export)
+    frames, whose, outputs = predict(
+        args.audio, args.style, args.fps, args.mesh, args.output, args.export, args.gaze
+    )
     print(f"{frames} frames of expressions at {args.fps} fps ({whose}) → " + ", ".join(map(str, outputs)))
     return 0
