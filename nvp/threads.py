@@ -65,6 +65,17 @@ def fixed_threads() -> int | None:
     return None
 
 
+def fix_openmp_threads() -> None:
+    """With ``NVP_THREADS`` set and ``OMP_NUM_THREADS`` not, set ``OMP_NUM_THREADS`` to it too; call before
+    PyTorch is imported (the CLI's start). ``torch.set_num_threads`` alone left OpenMP threads that spin
+    while they wait: two ``NVP_THREADS=1`` dubs of a 1 s clip side by side on 2 cores (a cluster's two
+    workers) took 13.6-32.6 s each, 3.7 s with ``OMP_NUM_THREADS`` set as well (3.8 s with
+    ``OMP_WAIT_POLICY=PASSIVE`` instead; AMD EPYC, 2026-11-28)."""
+    fixed = os.environ.get(ENV, "").strip()
+    if fixed.isdigit() and int(fixed) > 0 and not os.environ.get("OMP_NUM_THREADS", "").strip():
+        os.environ["OMP_NUM_THREADS"] = fixed
+
+
 def frame_workers() -> int:
     """How many frames to render at once (one PyTorch thread each, see
     :func:`renderer.loop.render_frames`): the fixed count (:func:`fixed_threads`), else the cores this

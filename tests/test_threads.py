@@ -69,3 +69,18 @@ def test_never_more_threads_than_pytorch_would_use(clock, monkeypatch):
     monkeypatch.setattr(threads, "available_cores", lambda: 8)  # 8 logical cores, PyTorch's default 2
     g = ThreadGovernor()
     assert g.cores == 2 and g.threads == 2
+
+
+def test_a_fixed_count_fixes_openmp_too_unless_the_user_did(monkeypatch):
+    monkeypatch.setenv("NVP_THREADS", "1")
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    threads.fix_openmp_threads()
+    assert threads.os.environ["OMP_NUM_THREADS"] == "1"
+    monkeypatch.setenv("OMP_NUM_THREADS", "3")  # the user's own choice stays
+    threads.fix_openmp_threads()
+    assert threads.os.environ["OMP_NUM_THREADS"] == "3"
+    monkeypatch.delenv("NVP_THREADS")
+    monkeypatch.delenv("OMP_NUM_THREADS")
+    threads.fix_openmp_threads()  # nothing fixed: OpenMP keeps its default
+    assert "OMP_NUM_THREADS" not in threads.os.environ
+

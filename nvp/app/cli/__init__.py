@@ -73,8 +73,10 @@ def main(argv: list[str] | None = None) -> int:
     )
     from nvp.allocator import keep_freed_memory
     from nvp.errors import NvpError
+    from nvp.threads import fix_openmp_threads
 
     keep_freed_memory()
+    fix_openmp_threads()  # before anything imports PyTorch
     try:
         return args.func(args)
     except NvpError as e:
