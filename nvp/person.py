@@ -212,6 +212,7 @@ def predict_expressions(
     net: Audio2ExpressionNet,
     num_frames: int | None = None,
     transcript: tuple[str, str] | None = None,
+    upper_face: bool = False,
 ) -> np.ndarray:
     """Expression coefficients ``(T, K_exp)`` for mono audio, at ``fps`` video frames per second.
 
@@ -220,7 +221,9 @@ def predict_expressions(
     detector) blend smoothly towards the person's rest expression, so pauses, silence, noise and music give
     a resting mouth. ``transcript``: ``(text, language)`` of what the audio says (an espeak-ng language,
     :mod:`nvp.transcript`): its p, b and m close the lips where they are aligned, its rounded vowels round
-    them (as a rounded-vowel share of 1, :func:`nvp.transcript.rounded_weights`).
+    them (as a rounded-vowel share of 1, :func:`nvp.transcript.rounded_weights`). ``upper_face``: the eyes
+    blink and the brows move as the person's do (:func:`nvp.upper_face.upper_face_motion`, the same blinks
+    for the same audio), for animations from audio alone; a dub keeps its footage's.
     """
     from nvp.vad import voice_activity
     from nvp.windows import iter_frame_windows
@@ -246,9 +249,17 @@ def predict_expressions(
         text_closure = bilabial_weights(alignment, fps, len(audio_exp))
         if rounded is not None:  # the text's rounded vowels round the lips and keep them apart
             rounded = np.maximum(rounded, rounded_weights(alignment, fps, len(audio_exp)))
-    return apply_style(
+    expr = apply_style(
         style, audio_exp, closure, voice, opening=z, text_closure=text_closure, fps=fps, rounded=rounded
     )
+    if upper_face and style.upper_face is not None:
+        import hashlib
+
+        from nvp.upper_face import upper_face_motion
+
+        seed = int.from_bytes(hashlib.sha256(np.ascontiguousarray(audio).tobytes()).digest()[:4], "little")
+        expr = expr + upper_face_motion(style.upper_face, audio, sample_rate, voice, fps, seed)
+    return expr
 
 
 def rounding_tap(style: PersonStyle, blocks: Iterable[np.ndarray], shares: list) -> Iterator[np.ndarray]:

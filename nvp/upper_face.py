@@ -176,9 +176,11 @@ def upper_face_motion(
 
 
 def frame_loudness(audio: np.ndarray, sample_rate: int, fps: float, num_frames: int) -> np.ndarray:
-    """``(T,)`` RMS level in dB of mono ``audio`` over each video frame's span (-100 dB for silence)."""
-    a = np.asarray(audio, np.float64)
-    edges = np.round(np.arange(num_frames + 1) / fps * sample_rate).astype(int).clip(0, len(a))
-    cum = np.concatenate([[0.0], np.cumsum(a * a)])
-    n = np.maximum(edges[1:] - edges[:-1], 1)
-    return 10 * np.log10(np.maximum((cum[edges[1:]] - cum[edges[:-1]]) / n, 1e-10))
+    """``(T,)`` level in dBFS of mono ``audio`` at each video frame's middle (the 20 ms blocks of
+    :func:`nvp.vad.rms_envelope_db`)."""
+    from nvp.vad import rms_envelope_db
+
+    block_s = 0.02
+    env = rms_envelope_db(audio, sample_rate, block_s)
+    at = ((np.arange(num_frames) + 0.5) / fps / block_s).astype(int)
+    return env[np.clip(at, 0, len(env) - 1)].astype(np.float64)

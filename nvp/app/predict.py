@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import hashlib
 from pathlib import Path
 
 import numpy as np
@@ -17,8 +16,6 @@ from nvp.gaze import read_gaze_file
 from nvp.media import read_audio
 from nvp.person import predict_expressions
 from nvp.tracked import TrackedSequence
-from nvp.upper_face import upper_face_motion
-from nvp.vad import voice_activity
 
 
 def predict(
@@ -37,7 +34,7 @@ def predict(
 
     The upper face, which audio does not decide, moves as the person's does in their footage when the style
     knows it (their blinks at their rate, their brows with the speech's emphasis:
-    :func:`nvp.upper_face.upper_face_motion`, the same blinks for the same audio); the export's two eye
+    :func:`nvp.person.predict_expressions` with ``upper_face``); the export's two eye
     nodes look as ``gaze`` asks (``"camera"`` or a gaze file, :mod:`nvp.gaze`).
 
     Returns the number of frames, whose face it is and the files written.
@@ -71,11 +68,7 @@ def predict(
     if gaze_file is not None:
         read_gaze_file(gaze_file)  # a bad file is refused before any work
     samples = read_audio(audio, 16000)
-    expr = predict_expressions(samples, 16000, fps, style, net)
-    if style.upper_face is not None:
-        voice = voice_activity(samples, 16000, fps, len(expr))
-        seed = int.from_bytes(hashlib.sha256(samples.tobytes()).digest()[:4], "little")
-        expr = expr + upper_face_motion(style.upper_face, samples, 16000, voice, fps, seed)
+    expr = predict_expressions(samples, 16000, fps, style, net, upper_face=True)
     if output is not None:
         out = {"expression": expr.astype(np.float32), "fps": np.float32(fps)}
         if face_given:
