@@ -99,3 +99,98 @@ def gaze_direction(quaternions: np.ndarray) -> np.ndarray:
     fy = 2 * (y * z - w * x)
     fz = 1 - 2 * (x * x + y * y)
     return np.stack([np.arctan2(fx, fz), np.arcsin(np.clip(fy, -1, 1))], 1).astype(np.float32)
+
+
+IRIS_POINTS = {"left": slice(473, 478), "right": slice(468, 473)}
+"""mediapipe's iris landmarks (after the 468 face-mesh points) of the face's left and right eye: the centre,
+then four points on the iris's edge."""
+EYES = ("left_eye", "right_eye")
+"""The face model's landmark groups of the two eye openings (16-point loops), in the order of every
+per-eye array here: the face's left eye first."""
+
+
+def iris_circles(points: np.ndarray) -> np.ndarray:
+    """``(..., 2, 3)`` float32 centre ``x, y`` and radius (pixels) of the left and right iris in mediapipe
+    landmarks ``(..., 478, >=2)`` (NaN where the landmarks are)."""
+    p = np.asarray(points, np.float32)[..., :2]
+    circles = []
+    for eye in IRIS_POINTS.values():
+        iris = p[..., eye, :]
+        radius = np.linalg.norm(iris[..., 1:, :] - iris[..., :1, :], axis=-1).mean(-1)
+        circles.append(np.concatenate([iris[..., 0, :], radius[..., None]], -1))
+    return np.stack(circles, -2)
+
+
+def eyeball_centres(vertices: np.ndarray, rotation: np.ndarray, loops: tuple[np.ndarray, np.ndarray]):
+    """``(..., 2, 3)`` camera-frame centres of rotation of the left and right eyeball for camera-frame
+    vertices ``(..., V, 3)`` posed by ``rotation`` ``(..., 3, 3)``: the middle of each eye opening's vertex
+    loop, :data:`EYEBALL_RADIUS_CM` behind it along the face's own backward axis (+Z of the model)."""
+    v = np.asarray(vertices, np.float64)
+    back = np.asarray(rotation, np.float64)[..., :, 2] * EYEBALL_RADIUS_CM  # the model's +Z in the camera
+    return np.stack([v[..., np.asarray(loop), :].mean(-2) + back for loop in loops], -2)
+
+
+def gaze_vectors(gaze: np.ndarray) -> np.ndarray:
+    """``(..., 3)`` unit gaze directions in the face model's frame (+X the face's left, +Y down, +Z away from
+    the camera; straight ahead is -Z) of yaw and pitch ``(..., 2)`` (radians, as :func:`gaze_quaternions`)."""
+    yaw, pitch = np.moveaxis(np.asarray(gaze, np.float64), -1, 0)
+    return np.stack([np.sin(yaw) * np.cos(pitch), -np.sin(pitch), -np.cos(yaw) * np.cos(pitch)], -1)
+
+
+def gaze_angles(vectors: np.ndarray) -> np.ndarray:
+    """``(..., 2)`` yaw and pitch (radians) of model-frame directions ``(..., 3)``: the inverse of
+    :func:`gaze_vectors`."""
+    d = np.asarray(vectors, np.float64)
+    d = d / np.linalg.norm(d, axis=-1, keepdims=True)
+    return np.stack([np.arctan2(d[..., 0], -d[..., 2]), np.arcsin(np.clip(-d[..., 1], -1, 1))], -1)
+
+
+def gaze_from_iris(centres: np.ndarray, iris: np.ndarray, focal: float, principal: np.ndarray) -> np.ndarray:
+    """``(..., 3)`` camera-frame unit gaze directions of eyeballs centred at ``centres`` ``(..., 3)`` (cm)
+    whose iris centres are seen at pixels ``iris`` ``(..., 2)`` (pinhole ``focal``, ``principal`` point):
+    the ray through the pixel meets the eyeball's sphere (radius :data:`EYEBALL_RADIUS_CM`) where the iris
+    is, on the side facing the camera; a ray that misses it counts at its point nearest the sphere."""
+    c = np.asarray(centres, np.float64)
+    ray = np.concatenate([(np.asarray(iris, np.float64) - principal) / focal, np.ones_like(c[..., :1])], -1)
+    ray /= np.linalg.norm(ray, axis=-1, keepdims=True)
+    along = (ray * c).sum(-1, keepdims=True)  # distance along the ray to the point nearest the centre
+    miss = (c * c).sum(-1, keepdims=True) - along**2  # squared distance of that point from the centre
+    depth = along - np.sqrt(np.clip(EYEBALL_RADIUS_CM**2 - miss, 0, None))
+    d = ray * depth - c
+    return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+
+def iris_pixels(centres: np.ndarray, directions: np.ndarray, focal: float, principal: np.ndarray) -> np.ndarray:
+    """``(..., 2)`` pixels where eyeballs centred at ``centres`` ``(..., 3)`` looking along camera-frame
+    ``directions`` ``(..., 3)`` show their iris centre: the inverse of :func:`gaze_from_iris`."""
+    p = np.asarray(centres, np.float64) + EYEBALL_RADIUS_CM * np.asarray(directions, np.float64)
+    return focal * p[..., :2] / p[..., 2:] + principal
+
+
+def towards_camera(centres: np.ndarray) -> np.ndarray:
+    """``(..., 3)`` camera-frame unit directions from eyeball ``centres`` ``(..., 3)`` into the lens."""
+    c = -np.asarray(centres, np.float64)
+    return c / np.linalg.norm(c, axis=-1, keepdims=True)
+
+
+def angle_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``(...)`` angle in degrees between directions ``a`` and ``b`` ``(..., 3)``."""
+    a = np.asarray(a, np.float64) / np.linalg.norm(a, axis=-1, keepdims=True)
+    b = np.asarray(b, np.float64) / np.linalg.norm(b, axis=-1, keepdims=True)
+    return np.degrees(np.arccos(np.clip((a * b).sum(-1), -1, 1)))
+
+
+def eye_loops(model) -> tuple[np.ndarray, np.ndarray]:
+    """The vertex loops of the left and right eye openings of a :class:`nvp.face_model.FaceModel`."""
+    return tuple(model.landmark_vertices[model.landmark_groups[k]] for k in EYES)
+
+
+def footage_gaze(model, seq, frames: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Where the eyes of a tracked footage look: ``(eyeball centres, directions)``, both ``(T, 2, 3)``
+    camera-frame (left eye first; directions unit, NaN where no iris was detected) of ``frames`` (default:
+    all) of ``seq`` (a :class:`nvp.tracked.TrackedSequence` with ``iris``)."""
+    frames = np.arange(seq.num_frames) if frames is None else np.asarray(frames)
+    if seq.iris is None:
+        raise NvpError("this tracking holds no iris landmarks (made before nvp measured gaze): track again")
+    centres = eyeball_centres(seq.camera_vertices(model, frames), seq.rotation[frames], eye_loops(model))
+    return centres, gaze_from_iris(centres, seq.iris[frames, :, :2], seq.focal, seq.center)

@@ -53,6 +53,9 @@ class TrackedSequence:
             no face was found).
         face_model_sha256: hash of the face model the coefficients belong to.
         info: free-form provenance (config, timings), JSON-serialisable.
+        iris: ``(T, 2, 3)`` centre ``x, y`` and radius (pixels) of the face's left and right iris as detected
+            (:func:`nvp.gaze.iris_circles`; NaN where no face was found), or None (tracked before nvp kept
+            them): where the eyes look (:func:`nvp.gaze.gaze_from_iris`).
     """
 
     fps: float
@@ -69,6 +72,7 @@ class TrackedSequence:
     fit_error: np.ndarray
     face_model_sha256: str
     info: dict = field(default_factory=dict)
+    iris: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         t = self.rotation.shape[0]
@@ -80,6 +84,8 @@ class TrackedSequence:
             "valid": (self.valid.shape, (t,)),
             "fit_error": (self.fit_error.shape, (t,)),
         }
+        if self.iris is not None:
+            checks["iris"] = (self.iris.shape, (t, 2, 3))
         for name, (found, expected) in checks.items():
             if tuple(found) != expected:
                 raise FormatError(f"TrackedSequence.{name}: expected shape {expected}, found {found}")
@@ -96,7 +102,8 @@ class TrackedSequence:
         """The frames ``index`` selects (a slice, indices or a ``(T,)`` bool mask), in that order (same
         camera and identity)."""
         per_frame = ("rotation", "translation", "expression", "landmarks", "valid", "fit_error")
-        return dataclasses.replace(self, **{k: getattr(self, k)[index] for k in per_frame})
+        iris = None if self.iris is None else self.iris[index]
+        return dataclasses.replace(self, iris=iris, **{k: getattr(self, k)[index] for k in per_frame})
 
     def camera_vertices(
         self, model: FaceModel, frames: np.ndarray, expression: np.ndarray | None = None
@@ -117,6 +124,8 @@ class TrackedSequence:
         """Write ``tracked.json`` + ``tracked.npz`` into ``out_dir`` (:mod:`nvp.artifact`; other files in
         ``out_dir``, e.g. a preview, are kept). Returns the manifest path."""
         arrays = {k: getattr(self, k) for k in ARRAY_FIELDS}
+        if self.iris is not None:
+            arrays["iris"] = self.iris
         fields = {
             "fps": self.fps,
             "width": self.width,
@@ -148,5 +157,6 @@ class TrackedSequence:
             focal=float(m["focal"]),
             face_model_sha256=m["face_model_sha256"],
             info=m.get("info", {}),
+            iris=art.arrays.get("iris"),
             **{k: art.arrays[k] for k in ARRAY_FIELDS},
         )

@@ -38,6 +38,19 @@ def test_round_trip(tmp_path):
     for name in ("rotation", "translation", "expression", "landmarks", "valid", "identity"):
         np.testing.assert_array_equal(getattr(back, name), getattr(seq, name))
     assert back.fps == 25.0 and back.info == {"note": "test"} and back.face_model_sha256 == "abc"
+    assert back.iris is None  # tracked before nvp kept the iris
+
+
+def test_the_iris_travels_with_the_frames_and_the_file(tmp_path):
+    import dataclasses
+
+    iris = np.random.default_rng(1).normal(size=(5, 2, 3)).astype(np.float32)
+    seq = dataclasses.replace(make(), iris=iris)
+    seq.save(tmp_path / "track")
+    np.testing.assert_array_equal(TrackedSequence.load(tmp_path / "track").iris, iris)
+    np.testing.assert_array_equal(seq.frames(np.array([4, 1])).iris, iris[[4, 1]])
+    with pytest.raises(FormatError, match="iris"):
+        dataclasses.replace(seq, iris=iris[:3])
 
 
 def test_save_replaces_existing_and_keeps_other_files(tmp_path):

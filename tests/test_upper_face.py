@@ -149,3 +149,21 @@ def test_gaze_files_in_csv_and_json_and_their_errors(tmp_path):
             read_gaze_file(tmp_path / name)
     with pytest.raises(NvpError, match="cannot read"):
         read_gaze_file(tmp_path / "missing.csv")
+
+
+def test_gaze_angles_and_iris_pixels_invert_each_other():
+    from nvp.gaze import angle_between, gaze_angles, gaze_from_iris, gaze_vectors, iris_pixels, towards_camera
+
+    gaze = np.radians([[0, 0], [20, 0], [0, 15], [-30, -10]])
+    np.testing.assert_allclose(gaze_angles(gaze_vectors(gaze)), gaze, atol=1e-9)
+    np.testing.assert_allclose(gaze_vectors([[0, 0]]), [[0, 0, -1]], atol=1e-12)  # ahead: to the camera
+    assert gaze_vectors(np.radians([[0, 10]]))[0, 1] < 0  # pitch up: towards -Y (up in the image)
+    centres = np.array([[3.0, -2.0, 50.0]] * 4)
+    looks = np.einsum("ij,tj->ti", np.eye(3), gaze_vectors(gaze))
+    pixels = iris_pixels(centres, looks, 800.0, np.array([320.0, 240.0]))
+    back = gaze_from_iris(centres, pixels, 800.0, np.array([320.0, 240.0]))
+    assert angle_between(back, looks).max() < 1e-6
+    # a pixel off the eyeball (a bad landmark) still gives a direction, the nearest one
+    off = gaze_from_iris(centres[:1], pixels[:1] + 500, 800.0, np.array([320.0, 240.0]))
+    assert np.isfinite(off).all() and abs(np.linalg.norm(off) - 1) < 1e-9
+    assert angle_between(towards_camera(centres[0]), -centres[0]) < 1e-5  # arccos near 1: 1e-6 degrees

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from nvp.gaze import eye_loops, eyeball_centres, gaze_vectors, iris_pixels
 from tracking.detect import Detections
 
 
@@ -13,8 +14,11 @@ def synthetic_sequence(
 ):
     """Known identity, pose and expression, projected to 2D landmarks with Gaussian pixel noise.
 
+    The eyes look around (yaw and pitch up to 15 degrees, both eyes alike): the 10 iris points are the
+    projected iris centre (:func:`nvp.gaze.iris_pixels`) and four points on a 0.55 cm circle around it.
+
     Returns (Detections, truth dict). Truth holds identity (K_id,), rotation (T,3,3), translation (T,3),
-    expression (T,K_exp), focal, and object-space vertices (T,V,3).
+    expression (T,K_exp), focal, object-space vertices (T,V,3) and gaze (T,2) (yaw, pitch in radians).
     """
     rng = np.random.default_rng(seed)
     t = np.arange(frames) / fps
@@ -38,7 +42,18 @@ def synthetic_sequence(
     uv = uv + rng.normal(0, noise_px, uv.shape)
     z = (cam[..., 2] - cam[..., 2].mean(1, keepdims=True)) * focal / depth
     pts = np.concatenate([uv, z[..., None]], -1)[:, model.landmark_vertices]
-    iris = np.repeat(pts[:, :1], 10, axis=1)
+    gaze = np.radians(np.stack([15 * np.sin(2 * np.pi * 0.4 * t), 10 * np.sin(2 * np.pi * 0.25 * t)], 1))
+    centres = eyeball_centres(cam, rotation, eye_loops(model))
+    looks = np.einsum("tij,tj->ti", rotation, gaze_vectors(gaze))[:, None].repeat(2, 1)
+    principal = np.array([size / 2.0, size / 2.0])
+    iris = []
+    for eye in (1, 0):  # mediapipe's order: the right iris (468-472), then the left (473-477)
+        middle = iris_pixels(centres[:, eye], looks[:, eye], focal, principal)
+        edge = 0.55 * focal / centres[:, eye, 2:3]
+        ring = [middle + edge * np.array(d) for d in ((1, 0), (0, -1), (-1, 0), (0, 1))]
+        iris += [middle, *ring]
+    iris = np.stack(iris, 1) + rng.normal(0, noise_px, (frames, 10, 2))
+    iris = np.concatenate([iris, np.zeros((frames, 10, 1))], -1)
     points = np.concatenate([pts, iris], 1).astype(np.float32)
     found = np.ones(frames, bool)
     found[list(missing)] = False
@@ -58,6 +73,7 @@ def synthetic_sequence(
         expression=expression,
         focal=focal,
         vertices=verts,
+        gaze=gaze.astype(np.float32),
     )
     return det, truth
 
@@ -65,9 +81,10 @@ def synthetic_sequence(
 def synthetic_tracked(model, *, frames=12, size=96, focal=200.0, seed=0):
     """A ``TrackedSequence`` holding the exact truth of :func:`synthetic_sequence` (for renderer tests and
     benchmarks that need a posed face without running the tracker)."""
+    from nvp.gaze import iris_circles
     from nvp.tracked import TrackedSequence
 
-    _, truth = synthetic_sequence(model, frames=frames, size=size, focal=focal, noise_px=0.0, seed=seed)
+    det, truth = synthetic_sequence(model, frames=frames, size=size, focal=focal, noise_px=0.0, seed=seed)
     return TrackedSequence(
         fps=25.0,
         width=size,
@@ -82,4 +99,5 @@ def synthetic_tracked(model, *, frames=12, size=96, focal=200.0, seed=0):
         valid=np.ones(frames, bool),
         fit_error=np.zeros(frames, np.float32),
         face_model_sha256=model.sha256,
+        iris=iris_circles(det.points),
     )

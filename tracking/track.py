@@ -13,6 +13,7 @@ import torch
 
 from nvp.errors import NoFaceError
 from nvp.face_model import FaceModel, default_face_model
+from nvp.gaze import iris_circles
 from nvp.geometry import pinhole, posed
 from nvp.metrics import interocular_distance
 from nvp.tracked import TrackedSequence
@@ -151,6 +152,7 @@ def fit_detections(
         fit_error=err.astype(np.float32),
         face_model_sha256=model.sha256,
         info={"fit_config": asdict(cfg), "interocular_px": iod_px, "fit_seconds": round(elapsed, 2)},
+        iris=iris_circles(np.where(found[:, None, None], det.points, np.nan)),
     )
 
 

@@ -39,7 +39,8 @@ def tracked_cached(video: Path, cache: Path, progress: bool = True) -> TrackedSe
     try:
         seq = TrackedSequence.load(out)
         settings = json.loads(json.dumps(asdict(TrackingConfig())))  # as stored (tuples become lists)
-        if seq.face_model_sha256 == default_face_model().sha256 and seq.info.get("fit_config") == settings:
+        same = seq.face_model_sha256 == default_face_model().sha256 and seq.info.get("fit_config") == settings
+        if same and seq.iris is not None:  # made before tracking kept the iris: outdated
             return seq
     except FormatError:
         pass

@@ -141,12 +141,15 @@ def dub(
     style: str | Path | None = None,
     details: dict[str, str] | None = None,
     transcript: tuple[str, str] | None = None,
+    gaze: str | Path = "footage",
 ) -> DubResult:
     """Make the person of ``bundle_dir`` say ``audio_path``; writes an mp4 as long as the audio (±1 frame),
     with the input audio at its own sample rate and channels. ``style``: another person's bundle or style
     file whose talking style drives the mouth (:func:`nvp.person.transferred_style`); ``details``: more
     provenance tags for the output (e.g. how its speech was made); ``transcript``: ``(text, language)`` of
-    what the audio says, whose p, b and m then close the lips (:mod:`nvp.transcript`)."""
+    what the audio says, whose p, b and m then close the lips (:mod:`nvp.transcript`); ``gaze``: where the
+    eyes look, ``"footage"`` (where they look in the footage), ``"camera"`` (into the lens) or a gaze file
+    (:mod:`nvp.gaze`, angles in the face's frame), the footage's eyes turned (:mod:`renderer.eyes`)."""
     from nvp.artifact import check_output_file
     from nvp.media import audio_rate, frames_at, read_audio, storable_audio
     from nvp.person import predict_expressions
@@ -158,7 +161,8 @@ def dub(
     from renderer.render import FrameRenderer
 
     t_start = time.perf_counter()
-    check_output_place(check_output_file(output, inputs=(audio_path,)), (audio_path, bundle_dir, style))
+    looked_up = () if str(gaze) in ("footage", "camera") else (gaze,)
+    check_output_place(check_output_file(output, inputs=(audio_path,)), (audio_path, bundle_dir, style, *looked_up))
     bundle = PersonBundle.load(bundle_dir)
     rate = audio_rate(audio_path)
     original = read_audio(audio_path, None, mono=False)
@@ -170,18 +174,19 @@ def dub(
     net, seq, model = person.net, person.tracked, person.model
     duration = len(mono) / rate
     n_out = num_video_frames(duration, seq.fps)
+    looks = eye_requests(gaze, seq, n_out)
     expression = predict_expressions(
         mono, rate, seq.fps, person.style, net, num_frames=n_out, transcript=transcript
     )
     order = target_frame_indices(n_out, seq.num_frames)
     weights = model.mouth_weights()
-    extra = {**(details or {}), **person.mark}
+    extra = {**(details or {}), **person.mark, **({} if str(gaze) == "footage" else {"gaze": Path(gaze).name})}
     tags = synthetic_mark(
         "dub", bundle=bundle.manifest.get("id", bundle.root.name), audio=Path(audio_path).name, **extra
     )
     out = Path(output)
     out.parent.mkdir(parents=True, exist_ok=True)
-    parts = DubParts(out, _resume_key(audio_path, bundle, style, n_out, transcript, device=device))
+    parts = DubParts(out, _resume_key(audio_path, bundle, style, n_out, transcript, device, gaze))
     first = parts.finished * PART_FRAMES
     if parts.finished:  # every resumed run says so
         where = f"at frame {first} of {n_out}" if first < n_out else f"all {n_out} frames rendered, joining"
@@ -205,10 +210,37 @@ def dub(
                 start_entries=parts.entries,
                 decided=decided,
             )
+            if looks is not None:
+                made_frames = _eyes_turned(made_frames, model, seq, order, first, looks)
             parts.write(made_frames, decided, seq)
     parts.join(out, seq, audio=original, audio_rate=rate, metadata=tags)
     seconds = time.perf_counter() - t_start
     return DubResult(out, n_out, seq.fps, duration, seconds, order, expression, n_out - first)
+
+
+def eye_requests(gaze: str | Path, seq: TrackedSequence, frames: int) -> np.ndarray | None:
+    """Where the eyes of each of ``frames`` output frames should look: None for the footage's own gaze,
+    else ``(T, 2)`` yaw and pitch (a gaze file) or NaN (into the lens). Raises NvpError for a bad gaze file
+    or a person tracked before nvp measured the iris."""
+    from nvp.gaze import gaze_track
+
+    if str(gaze) == "footage":
+        return None
+    if seq.iris is None:
+        raise NvpError("this person was tracked before nvp measured gaze; run nvp fit again for --gaze")
+    if str(gaze) == "camera":
+        return np.full((frames, 2), np.nan, np.float32)
+    return gaze_track(gaze, frames, seq.fps)
+
+
+def _eyes_turned(made, model: FaceModel, seq: TrackedSequence, order: np.ndarray, first: int, looks):
+    """The frames ``made`` by the render loop from output frame ``first`` on, their eyes turned as ``looks``
+    (:func:`eye_requests`) asks (:func:`renderer.eyes.turn_eyes`)."""
+    from renderer.eyes import turn_eyes
+
+    for j, (frame, renders) in enumerate(made, start=first):
+        look = None if np.isnan(looks[j]).any() else looks[j]
+        yield frame, {k: turn_eyes(model, seq, v, int(order[j]), look) for k, v in renders.items()}
 
 
 def _resume_key(
@@ -218,11 +250,12 @@ def _resume_key(
     frames: int,
     transcript: tuple[str, str] | None = None,
     device: str = "cpu",
+    gaze: str | Path = "footage",
 ) -> dict:
     """What a resumed dub must share with the interrupted one: nvp's version and commit
     (:func:`nvp.provenance.code_version`), the device and precision it renders with, the audio's, the
-    style's and the transcript's content, the person bundle's manifest (its input, settings and stages)
-    and the parts' length."""
+    style's, the transcript's and the gaze file's content, the person bundle's manifest (its input,
+    settings and stages) and the parts' length."""
     from nvp.artifact import file_sha256
     from nvp.provenance import code_version
     from renderer.networks import fast_bf16
@@ -246,6 +279,7 @@ def _resume_key(
         "transcript_sha256": None
         if transcript is None
         else hashlib.sha256(json.dumps(list(transcript)).encode()).hexdigest(),
+        "gaze": str(gaze) if str(gaze) in ("footage", "camera") else file_sha256(Path(gaze)),
         "frames": frames,
         "part_frames": PART_FRAMES,
     }

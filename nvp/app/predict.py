@@ -77,11 +77,10 @@ def predict(
         with atomic_path(outputs[0]) as tmp:
             np.savez_compressed(tmp, **out)
     if export is not None:
-        from nvp.gaze import eye_centres, gaze_track
+        from nvp.gaze import eye_centres, eye_loops, gaze_track
         from nvp.gltf import face_animation, write_glb
 
         face = model.vertices(identity)
-        loops = tuple(model.landmark_vertices[model.landmark_groups[k]] for k in ("left_eye", "right_eye"))
 
         info = {
             "nvp": "audio-driven face animation (Neural Voice Puppetry)",
@@ -99,7 +98,7 @@ def predict(
                 expr,
                 fps,
                 info,
-                eye_centres(face, loops),
+                eye_centres(face, eye_loops(model)),
                 gaze_track(gaze, len(expr), fps),
             ),
             outputs[-1],

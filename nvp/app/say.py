@@ -26,10 +26,12 @@ def say(
     device: str = "cpu",
     progress: bool = True,
     style: Path | None = None,
+    gaze: str | Path = "footage",
 ) -> tuple[tts.Speech, DubResult]:
     """Speak ``text`` (``voice``, ``engine`` and ``slower`` as :func:`nvp.tts.synthesize` takes them) and
     dub ``person`` with it into ``output``; ``wav``: also keep the speech there. With piper, the text's own
-    phonemes align the lips (the transcript of :func:`nvp.app.dub.dub`). Returns the speech and the dub."""
+    phonemes align the lips (the transcript of :func:`nvp.app.dub.dub`); ``gaze`` as the dub takes it.
+    Returns the speech and the dub."""
     check_output_file(output)
     if wav is not None:
         check_output_file(wav)
@@ -51,6 +53,7 @@ def say(
             style=style,
             details={"speech": f"text to speech ({speech.engine}, voice {speech.voice})"},
             transcript=(text, speech.language) if tts.have_piper() else None,  # its phonemizer aligns
+            gaze=gaze,
         )
         if wav is not None:
             shutil.copyfile(made, wav)

@@ -27,6 +27,16 @@ def add_style_arg(p: argparse.ArgumentParser) -> None:
     )
 
 
+def add_gaze_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--gaze",
+        default="footage",
+        metavar="footage|camera|FILE",
+        help="where the eyes look: footage (as in the person's footage, the default), camera (into the "
+        "lens: eye contact) or a CSV / JSON file of time_s, yaw_deg, pitch_deg rows (see docs/commands.md)",
+    )
+
+
 def add_renderer_training_args(p: argparse.ArgumentParser, budget_minutes: float | None = None) -> None:
     """The renderer-training options shared by train-renderer, fit and eval."""
     from nvp.app.fit import FitConfig

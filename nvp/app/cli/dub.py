@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from nvp.app.cli.common import add_device_arg, add_style_arg, device, run_each
+from nvp.app.cli.common import add_device_arg, add_gaze_arg, add_style_arg, device, run_each
 from nvp.app.cluster import add_cluster_arg
 
 
@@ -32,6 +32,7 @@ def add_parser(sub) -> None:
     p.add_argument(
         "-o", "--output", type=Path, required=True, help="output mp4 (a folder for several: <audio name>.mp4)"
     )
+    add_gaze_arg(p)
     add_style_arg(p)
     add_device_arg(p)
     add_cluster_arg(p)
@@ -61,6 +62,7 @@ def _on_cluster(args: argparse.Namespace, audios: list[Path], address: str) -> i
     def argv_of(audio: Path) -> list[str]:
         argv = ["dub", absolute(audio), "--person", absolute(args.person), "--device", args.device]
         argv += ["-o", absolute(Path(args.output) / f"{audio.stem}.mp4")]
+        argv += ["--gaze", args.gaze if args.gaze in ("footage", "camera") else absolute(Path(args.gaze))]
         return argv + (["--style", absolute(args.style)] if args.style else [])
 
     code, _ = run_inputs("dub", audios, argv_of, address, args.output, "dubbed", progress=not args.quiet)
@@ -109,6 +111,7 @@ def run(args: argparse.Namespace) -> int:
             progress=not args.quiet,
             style=args.style,
             transcript=transcript,
+            gaze=args.gaze,
         )
         print(
             (f"[{i + 1}/{len(audios)}] " if several else "")

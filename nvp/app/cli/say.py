@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from nvp.app.cli.common import add_device_arg, add_style_arg, device
+from nvp.app.cli.common import add_device_arg, add_gaze_arg, add_style_arg, device
 
 
 def add_parser(sub) -> None:
@@ -25,6 +25,7 @@ def add_parser(sub) -> None:
     p.add_argument("--slower", type=float, default=1.0, help="speaking slowness (>1 slower, <1 faster)")
     p.add_argument("--wav", type=Path, help="also keep the speech here")
     p.add_argument("--list-voices", action="store_true", help="list the installed piper voices and exit")
+    add_gaze_arg(p)
     add_style_arg(p)
     add_device_arg(p)
     p.set_defaults(func=run)
@@ -57,6 +58,7 @@ def run(args: argparse.Namespace) -> int:
         device(args.device),
         not args.quiet,
         args.style,
+        args.gaze,
     )
     print(
         f"{speech.seconds:.1f} s of speech ({speech.engine}, voice {speech.voice}), {r.frames} frames in "

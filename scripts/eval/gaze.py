@@ -1,0 +1,203 @@
+"""Eye contact (issue 50): do ``nvp dub --gaze`` eyes look where asked, and do they still look like the
+footage's?
+
+    python -m scripts.eval.gaze [--videos V ...] [--cache /tmp/nvp-cache] [--out out/eval_gaze]
+
+For each video (default: one clip of each of ten test people of ``scripts/data_split.json``), every frame of
+the footage has its eyes turned as ``nvp dub`` turns them (:func:`renderer.eyes.eye_moves`,
+:func:`renderer.eyes.move_eyes`: the dub's eye region is the footage's, since the networks paint the lower
+face only) for two requests: into the lens (``--gaze camera``) and 10 degrees to the face's left and 5 up
+(a gaze file's ``10,5``). The output frames are read again by a fresh mediapipe landmarker, and the
+gaze measured from its iris landmarks the way tracking measures it (:func:`nvp.gaze.gaze_from_iris`, the
+tracked head's eyeballs) is compared with the request: the angle between them per eye, over the frames
+whose eyes are open enough to move all the way.
+
+Beside it, the measurement's own error: the same measurement on the footage (the eyes of people talking
+into a camera do not look exactly into the lens, so its angle to the lens is an upper bound of the
+measurement's error on real footage whose gaze is known to within a few degrees), and the measured gaze of
+the footage frames against the tracking's (two runs of the landmarker on the same pixels).
+
+Picture: in an eye box (the opening's bounding box grown by half its width) and inside the opening, the
+output's high-frequency energy over the footage's; the gradient ratio in the band around the opening's
+outline (:func:`nvp.image_metrics.seam_gradient_ratio`); crops of open, blinking and far-turned frames.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from nvp.app.corpus import tracked_cached
+from nvp.app.report import markdown_table
+from nvp.face_model import default_face_model
+from nvp.gaze import angle_between, footage_gaze, gaze_from_iris, gaze_vectors, iris_circles, towards_camera
+from nvp.image_metrics import high_frequency, high_frequency_energy, seam_gradient_ratio
+from nvp.media import iter_frames
+from renderer.eyes import OPEN_FULL, eye_moves, move_eyes, openness
+from scripts.common import SPLIT, VIDEOS, data_missing
+
+ASIDE = np.radians([10.0, 5.0])
+"""The second request: yaw 10 degrees to the face's left, pitch 5 degrees up (face frame)."""
+
+
+def default_videos() -> list[str]:
+    """One clip of each of the first ten test people (sorted by person) with a clip of 5 s or more."""
+    split = json.loads(SPLIT.read_text())
+    clips = []
+    for _, v in sorted(split["people"].items()):
+        test = [c for c in v["clips"] if c in split["test"]]
+        if test:
+            clips.append(test[0])
+    return clips[:10]
+
+
+def eye_box(outline: np.ndarray, shape: tuple[int, int]) -> tuple[int, int, int, int]:
+    lo, hi = outline.min(0), outline.max(0)
+    pad = 0.5 * (hi[0] - lo[0])
+    y0, x0 = int(max(lo[1] - pad, 0)), int(max(lo[0] - pad, 0))
+    return y0, int(min(hi[1] + pad, shape[0])), x0, int(min(hi[0] + pad, shape[1]))
+
+
+def evaluate(video: Path, cache: Path, out: Path, crops: bool = True) -> dict:
+    from tracking.landmarks import LandmarkDetector
+
+    model = default_face_model()
+    seq = tracked_cached(video, cache, progress=False)
+    centres, footage = footage_gaze(model, seq)
+    lens = towards_camera(centres)
+    aside = np.einsum("tij,j->ti", seq.rotation, gaze_vectors(ASIDE))[:, None].repeat(2, 1)
+    requests = {"camera": lens, "aside": aside}
+    groups = [model.landmark_groups[g] for g in ("left_eye", "right_eye")]
+    rows = {k: {"err": [], "hf_box": [], "hf_open": [], "seam": []} for k in requests}
+    again, full_open = [], []
+    detectors = {k: LandmarkDetector() for k in ("footage", *requests)}
+    saved = {}
+    try:
+        for k, frame in enumerate(iter_frames(video, seq.fps)):
+            if k >= seq.num_frames:
+                break
+            t = k / seq.fps
+            seen = detectors["footage"].detect(frame, t)
+            if seen is not None and np.isfinite(seq.iris[k]).all():
+                measured = gaze_from_iris(centres[k], iris_circles(seen.points)[:, :2], seq.focal, seq.center)
+                again.append(angle_between(measured, footage[k]))
+            outlines = [seq.landmarks[k, g] for g in groups]
+            opened = np.isfinite(seq.iris[k]).all() and all(
+                openness(o, r) >= OPEN_FULL for o, r in zip(outlines, seq.iris[k, :, 2], strict=True)
+            )
+            full_open.append(opened)
+            for name, wanted in requests.items():
+                moves = eye_moves(model, seq, k, wanted[k], centres[k])
+                made, weight = move_eyes(frame, moves, with_weight=True)
+                seen = detectors[name].detect(made, t)
+                if seen is None or not opened:
+                    continue
+                measured = gaze_from_iris(centres[k], iris_circles(seen.points)[:, :2], seq.focal, seq.center)
+                r = rows[name]
+                r["err"].append(angle_between(measured, wanted[k]))
+                for o in outlines:
+                    box = eye_box(o, frame.shape[:2])
+                    r["hf_box"].append(high_frequency_energy(made, box) / high_frequency_energy(frame, box))
+                    inside = weight[box[0] : box[1], box[2] : box[3]] > 0.5
+                    hf = [(high_frequency(x, box)[inside] ** 2).sum() for x in (made, frame)]
+                    r["hf_open"].append(hf[0] / hf[1] if hf[1] > 0 else np.nan)
+                r["seam"].append(seam_gradient_ratio(made, frame, weight))
+                turn = float(angle_between(footage[k], wanted[k]).mean())
+                if crops and name == "camera" and turn > saved.get("far", (0, None))[0]:
+                    saved["far"] = (turn, _crop(frame, made, outlines))
+            if crops and not opened and np.isfinite(seq.landmarks[k]).all() and "blink" not in saved:
+                made = move_eyes(frame, eye_moves(model, seq, k, lens[k], centres[k]))
+                saved["blink"] = (0, _crop(frame, made, outlines))
+            if crops and k == seq.num_frames // 2 and opened:
+                made = move_eyes(frame, eye_moves(model, seq, k, lens[k], centres[k]))
+                saved["open"] = (0, _crop(frame, made, outlines))
+    finally:
+        for d in detectors.values():
+            d.close()
+    import cv2
+
+    out.mkdir(parents=True, exist_ok=True)
+    for what, (_, img) in saved.items():
+        cv2.imwrite(str(out / f"{video.stem}_{what}.png"), img[..., ::-1])
+    off_lens = angle_between(footage, lens)[np.array(full_open)]
+    result = {
+        "video": video.name,
+        "frames": seq.num_frames,
+        "open": int(np.sum(full_open)),
+        "iris_px": float(np.nanmedian(seq.iris[..., 2])),
+        "footage_to_lens": float(np.nanmedian(off_lens)),
+        "remeasured": float(np.nanmedian(np.concatenate(again))) if again else np.nan,
+    }
+    for name, r in rows.items():
+        err = np.concatenate(r["err"]) if r["err"] else np.array([np.nan])
+        result[name] = {
+            "median_deg": float(np.nanmedian(err)),
+            "p90_deg": float(np.nanpercentile(err, 90)),
+            "hf_box": float(np.nanmedian(r["hf_box"])),
+            "hf_open": float(np.nanmedian(r["hf_open"])),
+            "seam": float(np.nanmedian(r["seam"])),
+        }
+    return result
+
+
+def _crop(frame: np.ndarray, made: np.ndarray, outlines: list[np.ndarray]) -> np.ndarray:
+    """Both eyes of the footage (top) and of the output (bottom), enlarged 3x."""
+    import cv2
+
+    both = np.concatenate(outlines)
+    y0, y1, x0, x1 = eye_box(both, frame.shape[:2])
+    tiles = [cv2.resize(x[y0:y1, x0:x1], None, fx=3, fy=3, interpolation=cv2.INTER_CUBIC) for x in (frame, made)]
+    return np.concatenate(tiles, 0)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--videos", nargs="*", help="clips of ../shared/data/video (default: ten test people)")
+    ap.add_argument("--cache", type=Path, default=Path("/tmp/nvp-cache"))
+    ap.add_argument("--out", type=Path, default=Path("out/eval_gaze"))
+    args = ap.parse_args(argv)
+    if data_missing(VIDEOS):
+        return 0
+    results = []
+    for name in args.videos or default_videos():
+        r = evaluate(VIDEOS / name, args.cache, args.out)
+        results.append(r)
+        print(json.dumps(r), file=sys.stderr, flush=True)
+    rows = [
+        [
+            r["video"],
+            f"{r['open']}/{r['frames']}",
+            f"{r['iris_px']:.1f}",
+            f"{r['footage_to_lens']:.1f}",
+            f"{r['remeasured']:.2f}",
+            f"{r['camera']['median_deg']:.1f} ({r['camera']['p90_deg']:.1f})",
+            f"{r['aside']['median_deg']:.1f} ({r['aside']['p90_deg']:.1f})",
+            f"{r['camera']['hf_box']:.3f} / {r['camera']['hf_open']:.3f}",
+            f"{r['camera']['seam']:.3f}",
+        ]
+        for r in results
+    ]
+    head = [
+        "video",
+        "open frames",
+        "iris radius px",
+        "footage: gaze to lens °",
+        "remeasured footage °",
+        "camera: error ° median (p90)",
+        "aside: error ° median (p90)",
+        "HF eye box / opening",
+        "seam",
+    ]
+    table = markdown_table([dict(zip(head, r, strict=True)) for r in rows])
+    print(table)
+    (args.out / "gaze.md").write_text(table + "\n")
+    (args.out / "gaze.json").write_text(json.dumps(results, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
