@@ -160,7 +160,9 @@ def gaze_from_iris(centres: np.ndarray, iris: np.ndarray, focal: float, principa
     return d / np.linalg.norm(d, axis=-1, keepdims=True)
 
 
-def iris_pixels(centres: np.ndarray, directions: np.ndarray, focal: float, principal: np.ndarray) -> np.ndarray:
+def iris_pixels(
+    centres: np.ndarray, directions: np.ndarray, focal: float, principal: np.ndarray
+) -> np.ndarray:
     """``(..., 2)`` pixels where eyeballs centred at ``centres`` ``(..., 3)`` looking along camera-frame
     ``directions`` ``(..., 3)`` show their iris centre: the inverse of :func:`gaze_from_iris`."""
     p = np.asarray(centres, np.float64) + EYEBALL_RADIUS_CM * np.asarray(directions, np.float64)

@@ -27,6 +27,14 @@ IRIS_EDGE = (1.0, 1.25)
 """The moved iris covers the white fully out to the first of these radii (over mediapipe's iris radius) and
 fades out at the second (its dark outer ring, the limbus, goes with it without a hard edge); its old place
 is filled with white out to the second."""
+LIDS_FOLLOW = (0.8, 0.3)
+"""Share of the iris's vertical move the middle of the upper and of the lower lid follow (a lowered gaze
+lowers the upper lid with it, almost one to one; the lower lid moves less)."""
+LASHES = 0.2
+"""The band just inside the opening's outline that shows lashes and the lids' shadow rather than eye, over
+the iris radius: no iris or white is taken from it."""
+LID_EDGE = 0.12
+"""Blur (Gaussian sigma over the iris radius) of the lids' edge over the turned eye."""
 MARGIN = 0.5
 """The warped patch around an eye: its opening's box grown by this fraction of the eye's width."""
 
@@ -67,10 +75,10 @@ def eye_moves(model, seq, index: int, directions: np.ndarray, centres: np.ndarra
     return moves
 
 
-def _opening_mask(outline: np.ndarray, shape: tuple[int, int], origin: np.ndarray) -> np.ndarray:
-    """``(h, w)`` float32 coverage (anti-aliased) of the eye opening in a patch at ``origin``."""
+def _opening_mask(outline: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """``(h, w)`` float32 coverage (anti-aliased) of the eye opening ``outline`` (patch pixels)."""
     mask = np.zeros(shape, np.uint8)
-    pts = np.round((outline - origin) * 16).astype(np.int32)  # 4 bits of sub-pixel precision
+    pts = np.round(outline * 16).astype(np.int32)  # 4 bits of sub-pixel precision
     cv2.fillPoly(mask, [pts], 255, cv2.LINE_AA, shift=4)
     return mask.astype(np.float32) / 255
 
@@ -81,44 +89,117 @@ def _disc(shape: tuple[int, int], centre: np.ndarray, inner: float, outer: float
     return np.clip((outer - np.hypot(xs - centre[0], ys - centre[1])) / max(outer - inner, 1.0), 0, 1)
 
 
-def turned_eye(patch: np.ndarray, opening: np.ndarray, iris: np.ndarray, to: np.ndarray) -> np.ndarray:
+def lids_moved(outline: np.ndarray, shift_y: float) -> np.ndarray:
+    """``(N, 2)`` eye-opening ``outline`` with its lids following the iris's vertical ``shift_y`` (pixels)
+    as real lids follow the eye (:data:`LIDS_FOLLOW`): most in the middle of each lid, not at all at the
+    two corners (the outline's leftmost and rightmost points)."""
+    o = np.asarray(outline, np.float64)
+    a, b = o[np.argmin(o[:, 0])], o[np.argmax(o[:, 0])]
+    u = np.clip((o[:, 0] - a[0]) / max(b[0] - a[0], 1e-6), 0, 1)
+    chord = a[1] + u * (b[1] - a[1])
+    follow = np.where(o[:, 1] < chord, LIDS_FOLLOW[0], LIDS_FOLLOW[1])  # above the corners' line: upper lid
+    return o + np.stack([np.zeros(len(o)), 4 * u * (1 - u) * follow * shift_y], 1)
+
+
+def thin_plate_spline(points: np.ndarray, values: np.ndarray):
+    """The thin-plate spline through ``values`` ``(N, 2)`` at ``points`` ``(N, 2)`` (the smoothest map of
+    the plane taking each point to its value), as a function of ``(M, 2)`` points. (kornia's
+    ``get_tps_transform`` centres its kernels on the values, not the points: it meets them at the points
+    but bends between them.)"""
+    p = np.asarray(points, np.float64)
+    n = len(p)
+
+    def kernel(q: np.ndarray) -> np.ndarray:
+        d2 = ((q[:, None] - p[None]) ** 2).sum(-1)
+        return 0.5 * d2 * np.log(np.where(d2 > 0, d2, 1.0))  # r² log r
+
+    affine = np.concatenate([np.ones((n, 1)), p], 1)
+    system = np.block([[kernel(p), affine], [affine.T, np.zeros((3, 3))]])
+    rhs = np.concatenate([np.asarray(values, np.float64), np.zeros((3, 2))])
+    weights = np.linalg.lstsq(system, rhs, rcond=None)[0]
+    return lambda q: kernel(q) @ weights[:n] + np.concatenate([np.ones((len(q), 1)), q], 1) @ weights[n:]
+
+
+def _lids_warped(patch: np.ndarray, outline: np.ndarray, moved: np.ndarray) -> np.ndarray:
+    """``patch`` warped so that its eye-opening ``outline`` lies on ``moved`` (the skin, lids and lashes
+    carried along smoothly), the patch's border staying where it is."""
+    h, w = patch.shape[:2]
+    border = np.array(
+        [[x, y] for x in (0, w / 2, w - 1) for y in (0, h / 2, h - 1) if (x, y) != (w / 2, h / 2)]
+    )
+    spline = thin_plate_spline(np.concatenate([moved, border]), np.concatenate([outline, border]))
+    step = 3  # the spline is smooth: computed at every third pixel, interpolated between
+    ys, xs = np.mgrid[0 : h + step : step, 0 : w + step : step].astype(np.float64)
+    coarse = spline(np.stack([xs.ravel(), ys.ravel()], 1)).reshape(*xs.shape, 2).astype(np.float32)
+    fine = cv2.resize(
+        coarse, (coarse.shape[1] * step, coarse.shape[0] * step), interpolation=cv2.INTER_LINEAR
+    )
+    grid = fine[1 : 1 + h, 1 : 1 + w]  # cv2.resize puts coarse sample k at fine pixel 3 k + 1
+    return cv2.remap(patch, grid[..., 0], grid[..., 1], cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+
+
+def turned_eye(patch: np.ndarray, outline: np.ndarray, iris: np.ndarray, to: np.ndarray):
     """``(h, w, 3)`` float32 eye ``patch`` with its iris (centre ``iris[:2]``, radius ``iris[2]``, patch
-    pixels) moved to ``to``, inside ``opening`` (``(h, w)`` coverage of the eye opening; outside it the
-    patch is returned as it is: the lids stay). Two layers: the white of the eye, the iris's place filled
-    from the white around it (OpenCV's inpainting), and over it the iris, each of its pixels from where it
-    was; a part of it the lids hid in the footage is taken from its mirror image across the iris's
-    horizontal middle (an iris is much the same all around), else from its colour at that radius."""
-    h, w = opening.shape
-    seen = opening > 0.5
+    pixels) moved to ``to`` and the ``(h, w)`` share of each pixel that changed. ``outline``: the eye
+    opening in the patch.
+
+    The lids follow the iris's vertical move (:func:`lids_moved`, the skin around them warped smoothly,
+    :func:`thin_plate_spline`); inside the new opening, two layers: the white of the eye, spread by OpenCV's
+    inpainting from the white the footage shows (over the iris's old place and where the lids open wider
+    than in the footage), and over it the iris, each of its pixels from where it was; a part the lids hid in
+    the footage is taken from a mirror image of it (an iris is much the same all around), else from its
+    mean colour."""
+    h, w = patch.shape[:2]
+    seen = _opening_mask(outline, (h, w)) > 0.5
+    reach = 2 * max(1, round(LASHES * iris[2])) + 1
+    inner = cv2.erode(seen.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (reach, reach)))
+    luma = patch @ np.array([0.299, 0.587, 0.114], np.float32)
+    shift = np.asarray(to, np.float64) - iris[:2]
+    opened = lids_moved(outline, shift[1])
+    skin = patch if abs(shift[1]) < 0.05 else _lids_warped(patch, outline, opened)
     old = _disc((h, w), iris[:2], IRIS_EDGE[1] * iris[2], IRIS_EDGE[1] * iris[2] + 1) > 0
-    white = cv2.inpaint(
-        np.clip(patch, 0, 255).astype(np.uint8), (old & seen).astype(np.uint8) * 255, 3, cv2.INPAINT_TELEA
-    ).astype(np.float32)
+    # the white the footage shows: the brighter half of the opening outside the iris (a part of the iris
+    # mediapipe's circle misses, lashes or the lids' shadow are darker; not spread as white)
+    white_seen = inner.astype(bool) & ~old
+    if white_seen.any():
+        white_seen &= luma >= np.median(luma[white_seen])
+    if white_seen.sum() >= 4:
+        white = cv2.inpaint(
+            np.clip(patch, 0, 255).astype(np.uint8), (~white_seen).astype(np.uint8), 3, cv2.INPAINT_TELEA
+        ).astype(np.float32)
+    else:  # no white in sight (a narrow eye filled by its iris): its brightest pixels
+        white = np.broadcast_to(
+            np.percentile(patch[seen], 95, axis=0) if seen.any() else patch.mean((0, 1)), patch.shape
+        )
     ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
-    shift = np.asarray(to, np.float32) - iris[:2].astype(np.float32)
-    sx, sy = xs - shift[0], ys - shift[1]  # where each output pixel's iris pixel was
-    cx, cy = float(iris[0]), float(iris[1])
-    mirrored = 2 * cy - sy
-    # pixels right inside the outline are lashes and the lid's shadow as often as eye: not taken
-    inner = cv2.erode(seen.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(np.float32)
-    visible = cv2.remap(inner, sx, sy, cv2.INTER_LINEAR, borderValue=0) > 0.99
-    source_y = np.where(visible, sy, mirrored)
-    ring = np.zeros((h, w, 3), np.float32)
-    hidden_too = ~visible & (cv2.remap(inner, sx, mirrored, cv2.INTER_LINEAR) <= 0.99)
-    if hidden_too.any():  # neither the pixel nor its mirror image was seen: the iris's mean colour
-        inside = seen & old
-        ring[:] = patch[inside].mean(0) if inside.any() else patch[seen].mean(0)
-    moved = cv2.remap(patch, sx, source_y, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
-    moved = np.where(hidden_too[..., None], ring, moved)
+    sx, sy = xs - np.float32(shift[0]), ys - np.float32(shift[1])  # where each output pixel's iris pixel was
+    inner = inner.astype(np.float32)
+    # each iris pixel from where it was, else (hidden by a lid or a corner) from its mirror image across the
+    # iris's horizontal middle, its vertical middle or its centre
+    mx, my = np.float32(2 * iris[0]) - sx, np.float32(2 * iris[1]) - sy
+    take_x, take_y = sx.copy(), sy.copy()
+    hidden = cv2.remap(inner, sx, sy, cv2.INTER_LINEAR, borderValue=0) <= 0.99
+    for cx, cy in ((sx, my), (mx, sy), (mx, my)):
+        found = hidden & (cv2.remap(inner, cx, cy, cv2.INTER_LINEAR, borderValue=0) > 0.99)
+        take_x[found], take_y[found] = cx[found], cy[found]
+        hidden &= ~found
+    moved = cv2.remap(patch, take_x, take_y, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+    if hidden.any():  # nowhere seen: the iris's mean colour
+        where = seen & old
+        moved[hidden] = patch[where].mean(0) if where.any() else patch[seen].mean(0)
     cover = _disc((h, w), to, IRIS_EDGE[0] * iris[2], IRIS_EDGE[1] * iris[2])[..., None]
     eye = white + cover * (moved - white)
-    return patch + opening[..., None] * (eye - patch)
+    # the lids' edge is as soft as the footage's (blurred by optics and compression), not a polygon's
+    opening = cv2.GaussianBlur(_opening_mask(opened, (h, w)), (0, 0), LID_EDGE * iris[2])
+    made = skin + opening[..., None] * (eye - skin)
+    changed = np.maximum(opening, (np.abs(skin - patch).max(-1) > 0.5).astype(np.float32))
+    return made, changed
 
 
 def move_eyes(frame: np.ndarray, moves: list[EyeMove], with_weight: bool = False):
     """``frame`` ``(H, W, 3)`` uint8 with each eye of ``moves`` turned (a new array; ``frame`` itself when
     nothing moves). ``with_weight``: also the ``(H, W)`` float32 share of each output pixel that changed
-    (the eye openings)."""
+    (the eye openings, and the lids where they follow the iris)."""
     out = frame
     weight = np.zeros(frame.shape[:2], np.float32) if with_weight else None
     for move in moves:
@@ -131,16 +212,14 @@ def move_eyes(frame: np.ndarray, moves: list[EyeMove], with_weight: bool = False
         if (hi - lo).min() < 4:
             continue
         (x0, y0), (x1, y1) = lo, hi
-        h, w = y1 - y0, x1 - x0
         patch = out[y0:y1, x0:x1].astype(np.float32)
-        mask = _opening_mask(move.outline, (h, w), lo)
         iris = np.concatenate([move.iris[:2] - lo, move.iris[2:]])
-        made = turned_eye(patch, mask, iris, move.to - lo)
+        made, changed = turned_eye(patch, move.outline - lo, iris, move.to - lo)
         if out is frame:
             out = frame.copy()
         out[y0:y1, x0:x1] = np.clip(np.round(made), 0, 255).astype(np.uint8)
         if weight is not None:
-            weight[y0:y1, x0:x1] = np.maximum(weight[y0:y1, x0:x1], mask)
+            weight[y0:y1, x0:x1] = np.maximum(weight[y0:y1, x0:x1], changed)
     return (out, weight) if with_weight else out
 
 

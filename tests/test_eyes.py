@@ -70,7 +70,10 @@ def test_a_blinking_eye_is_left_alone_and_a_half_open_one_moves_part_of_the_way(
 
     seq = dataclasses.replace(seq, landmarks=landmarks, iris=iris)
     looks = np.tile([[0.5, 0.0, -0.866]], (2, 1))  # 30 degrees to the side: a long way
-    moves = [eye_moves(face_model, seq, k, looks, centres=np.array([[-3, 0, 40.0], [3, 0, 40.0]])) for k in range(3)]
+    moves = [
+        eye_moves(face_model, seq, k, looks, centres=np.array([[-3, 0, 40.0], [3, 0, 40.0]]))
+        for k in range(3)
+    ]
     assert moves[0] == []
     part = [np.linalg.norm(m.to - m.iris[:2]) for m in moves[1]]
     full = [np.linalg.norm(m.to - m.iris[:2]) for m in moves[2]]

@@ -96,12 +96,16 @@ def test_dub_turns_only_the_eyes_where_asked_and_a_bad_gaze_file_is_one_error(bu
         (x0, y0), (x1, y1) = np.floor(pts.min(0)).astype(int) - 8, np.ceil(pts.max(0)).astype(int) + 8
         eyes[max(y0, 0) : y1, max(x0, 0) : x1] = True
     change = np.abs(made["aside"] - made["today"]).max(-1)
-    assert change[:, eyes].max() > 60 and np.percentile(change[:, ~eyes], 99) < 8 and change[:, ~eyes].mean() < 1
+    assert (
+        change[:, eyes].max() > 60 and np.percentile(change[:, ~eyes], 99) < 8 and change[:, ~eyes].mean() < 1
+    )
     proc = nvp("verify", tmp_path / "aside.mp4", "--json")
     assert "aside.json" in proc.stdout, proc.stdout  # the output says where its eyes were turned to look
     for text, says in [("time_s,yaw_deg\n0,5\n", "pitch_deg"), ("time_s,yaw_deg,pitch_deg\n0,90,0\n", "45")]:
         aside.with_suffix(".csv").write_text(text)
-        proc = nvp("dub", wav, "--person", bundle, "-o", tmp_path / "x.mp4", "--gaze", aside.with_suffix(".csv"))
+        proc = nvp(
+            "dub", wav, "--person", bundle, "-o", tmp_path / "x.mp4", "--gaze", aside.with_suffix(".csv")
+        )
         assert_one_line_error(proc, says)
         assert not (tmp_path / "x.mp4").exists()
 

@@ -83,4 +83,3 @@ def test_a_fixed_count_fixes_openmp_too_unless_the_user_did(monkeypatch):
     monkeypatch.delenv("OMP_NUM_THREADS")
     threads.fix_openmp_threads()  # nothing fixed: OpenMP keeps its default
     assert "OMP_NUM_THREADS" not in threads.os.environ
-

@@ -162,7 +162,9 @@ def dub(
 
     t_start = time.perf_counter()
     looked_up = () if str(gaze) in ("footage", "camera") else (gaze,)
-    check_output_place(check_output_file(output, inputs=(audio_path,)), (audio_path, bundle_dir, style, *looked_up))
+    check_output_place(
+        check_output_file(output, inputs=(audio_path,)), (audio_path, bundle_dir, style, *looked_up)
+    )
     bundle = PersonBundle.load(bundle_dir)
     rate = audio_rate(audio_path)
     original = read_audio(audio_path, None, mono=False)
@@ -180,7 +182,11 @@ def dub(
     )
     order = target_frame_indices(n_out, seq.num_frames)
     weights = model.mouth_weights()
-    extra = {**(details or {}), **person.mark, **({} if str(gaze) == "footage" else {"gaze": Path(gaze).name})}
+    extra = {
+        **(details or {}),
+        **person.mark,
+        **({} if str(gaze) == "footage" else {"gaze": Path(gaze).name}),
+    }
     tags = synthetic_mark(
         "dub", bundle=bundle.manifest.get("id", bundle.root.name), audio=Path(audio_path).name, **extra
     )
