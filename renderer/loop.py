@@ -34,6 +34,7 @@ def render_frames(
     sources: Callable[[int], tuple[np.ndarray, int, np.ndarray]] | None = None,
     start_entries: Mapping[str, int | None] | None = None,
     decided: list[dict[str, int | None]] | None = None,
+    finish: Callable[[int, int, np.ndarray], np.ndarray] | None = None,
 ) -> Iterator[tuple[np.ndarray, dict[str, np.ndarray]]]:
     """The one render loop: footage ``frames`` (``(H, W, 3)`` uint8, one per entry of ``indices``, the
     footage frame each one is) in; for each, in order, the footage frame and its renders
@@ -48,7 +49,8 @@ def render_frames(
     :meth:`FrameRenderer.entry_costs` (:data:`MOUTH_LAG` frames ahead), so the teeth do not flicker.
     ``start_entries``: each variant's entry of the frame before the first (a resumed job then chooses as
     an uninterrupted one would); ``decided``, when given, receives every frame's entries, in order, before
-    the frame is yielded.
+    the frame is yielded. ``finish(j, index, render)``: a last step of each render, done by the workers too
+    (e.g. the eyes turned, :mod:`renderer.eyes`).
 
     On the CPU, ``workers`` frames are rendered at once, each by its own thread and renderer
     (:meth:`FrameRenderer.twin`) on one PyTorch thread, while the caller consumes (encodes) the previous
@@ -86,8 +88,16 @@ def render_frames(
         stack.callback(bar.close)
         pool = stack.enter_context(RenderWorkers(fr, n))
 
-        def composite(faces: dict[str, tuple], entries: dict[str, int | None]) -> Callable:
-            return lambda r: {name: r.composite(face, entries[name]) for name, (face, _) in faces.items()}
+        def composite(faces: dict[str, tuple], entries: dict[str, int | None], j: int) -> Callable:
+            def paste(r: FrameRenderer) -> dict[str, np.ndarray]:
+                made = {name: r.composite(face, entries[name]) for name, (face, _) in faces.items()}
+                if finish is None:
+                    return made
+                return {name: finish(j, faces[name][0].index, image) for name, image in made.items()}
+
+            return paste
+
+        pasted = 0  # output frames handed to the paste so far
 
         started: deque = deque()  # (frame, networks' future), in order
         waiting: deque = deque()  # (frame, prepared faces) whose bank entries are not fixed yet
@@ -96,6 +106,7 @@ def render_frames(
         def choose(item: tuple[np.ndarray, dict[str, tuple]] | None) -> None:
             """Hands the frames whose bank entries ``item`` (the next frame and its prepared faces) fixes
             to the paste; all frames still waiting when ``item`` is None (the end)."""
+            nonlocal pasted
             if item is not None:
                 waiting.append(item)
             if choosers is None:
@@ -109,7 +120,8 @@ def render_frames(
                 chosen = dict(zip(variants, entries, strict=True))
                 if decided is not None:
                     decided.append(chosen)
-                pasting.append((frame, pool.submit(composite(prepared, chosen))))
+                pasting.append((frame, pool.submit(composite(prepared, chosen, pasted))))
+                pasted += 1
 
         def done(limit: int) -> Iterator[tuple[np.ndarray, dict[str, np.ndarray]]]:
             while len(pasting) > limit:

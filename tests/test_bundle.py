@@ -554,6 +554,13 @@ def test_the_dub_resume_key_holds_nvps_commit_and_the_render_settings(fitted, tm
     if (Path(__file__).parents[1] / ".git").exists():
         assert "+g" in key["nvp"]  # a checkout: its commit, not only the release
     assert _resume_key(wav, b, None, 25, device="cuda") != key
+    # the eyes asked for: into the lens, or a gaze file's content (not its name)
+    gaze = tmp_path / "gaze.csv"
+    gaze.write_text("time_s,yaw_deg,pitch_deg\n0,10,0\n")
+    looked = _resume_key(wav, b, None, 25, device="cpu", gaze=gaze)
+    assert len({str(k) for k in (key, _resume_key(wav, b, None, 25, device="cpu", gaze="camera"), looked)}) == 3
+    gaze.write_text("time_s,yaw_deg,pitch_deg\n0,20,0\n")
+    assert _resume_key(wav, b, None, 25, device="cpu", gaze=gaze) != looked
 
 
 def test_a_fit_of_half_a_minute_never_announces_about_0_min():

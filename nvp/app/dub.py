@@ -215,9 +215,8 @@ def dub(
                 "dub",
                 start_entries=parts.entries,
                 decided=decided,
+                finish=None if looks is None else _eyes_turned(model, seq, first, looks),
             )
-            if looks is not None:
-                made_frames = _eyes_turned(made_frames, model, seq, order, first, looks)
             parts.write(made_frames, decided, seq)
     parts.join(out, seq, audio=original, audio_rate=rate, metadata=tags)
     seconds = time.perf_counter() - t_start
@@ -239,14 +238,16 @@ def eye_requests(gaze: str | Path, seq: TrackedSequence, frames: int) -> np.ndar
     return gaze_track(gaze, frames, seq.fps)
 
 
-def _eyes_turned(made, model: FaceModel, seq: TrackedSequence, order: np.ndarray, first: int, looks):
-    """The frames ``made`` by the render loop from output frame ``first`` on, their eyes turned as ``looks``
-    (:func:`eye_requests`) asks (:func:`renderer.eyes.turn_eyes`)."""
+def _eyes_turned(model: FaceModel, seq: TrackedSequence, first: int, looks: np.ndarray):
+    """The render loop's last step (``finish``) for a dub rendered from output frame ``first`` on: the eyes
+    turned as ``looks`` (:func:`eye_requests`) asks (:func:`renderer.eyes.turn_eyes`)."""
     from renderer.eyes import turn_eyes
 
-    for j, (frame, renders) in enumerate(made, start=first):
-        look = None if np.isnan(looks[j]).any() else looks[j]
-        yield frame, {k: turn_eyes(model, seq, v, int(order[j]), look) for k, v in renders.items()}
+    def finish(j: int, index: int, image: np.ndarray) -> np.ndarray:
+        look = looks[first + j]
+        return turn_eyes(model, seq, image, index, None if np.isnan(look).any() else look)
+
+    return finish
 
 
 def _resume_key(
