@@ -72,11 +72,14 @@ def gaze_track(request: str | Path, num_frames: int, fps: float) -> np.ndarray:
     ``request``: ``"camera"`` (straight ahead) or a gaze file (:func:`read_gaze_file`)."""
     if str(request) == "camera":
         return np.zeros((num_frames, 2), np.float32)
-    table = read_gaze_file(Path(request))
-    t = np.arange(num_frames) / fps
-    yaw = np.interp(t, table[:, 0], table[:, 1])
-    pitch = np.interp(t, table[:, 0], table[:, 2])
-    return np.radians(np.stack([yaw, pitch], 1)).astype(np.float32)
+    return gaze_at(read_gaze_file(Path(request)), np.arange(num_frames) / fps)
+
+
+def gaze_at(table: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """``(T, 2)`` float32 yaw and pitch in radians at ``times`` ``(T,)`` (seconds) of a gaze file's rows
+    (:func:`read_gaze_file`): interpolated linearly, held before the first row and after the last."""
+    angles = [np.interp(times, table[:, 0], table[:, c]) for c in (1, 2)]
+    return np.radians(np.stack(angles, -1)).astype(np.float32)
 
 
 def gaze_quaternions(gaze: np.ndarray) -> np.ndarray:

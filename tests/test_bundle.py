@@ -558,7 +558,8 @@ def test_the_dub_resume_key_holds_nvps_commit_and_the_render_settings(fitted, tm
     gaze = tmp_path / "gaze.csv"
     gaze.write_text("time_s,yaw_deg,pitch_deg\n0,10,0\n")
     looked = _resume_key(wav, b, None, 25, device="cpu", gaze=gaze)
-    assert len({str(k) for k in (key, _resume_key(wav, b, None, 25, device="cpu", gaze="camera"), looked)}) == 3
+    lens = _resume_key(wav, b, None, 25, device="cpu", gaze="camera")
+    assert len({str(k) for k in (key, lens, looked)}) == 3
     gaze.write_text("time_s,yaw_deg,pitch_deg\n0,20,0\n")
     assert _resume_key(wav, b, None, 25, device="cpu", gaze=gaze) != looked
 

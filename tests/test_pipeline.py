@@ -605,10 +605,22 @@ def test_live_dubs_a_stream_in_real_time_and_to_a_pipe(bundle, tmp_path):
     # no frame is shown before its audio and the look-ahead have arrived (the last ones: at the end)
     assert r.latency_s[:-15].min() >= r.lookahead_s - BLOCK_S
     assert verify(out).tags["nvp_kind"] == "live"
-    # raw PCM in on stdin, raw RGB frames out on stdout
+    # raw PCM in on stdin, raw RGB frames out on stdout, with eye contact
     pcm = (np.clip(speechlike(2.0, 16000), -1, 1) * 32767).astype("<i2").tobytes()
     proc = subprocess.run(
-        [sys.executable, "-m", "nvp.app.cli", "-q", "live", "-", "--person", bundle, "--raw"],
+        [
+            sys.executable,
+            "-m",
+            "nvp.app.cli",
+            "-q",
+            "live",
+            "-",
+            "--person",
+            bundle,
+            "--raw",
+            "--gaze",
+            "camera",
+        ],
         input=pcm,
         capture_output=True,
         timeout=300,
@@ -617,6 +629,9 @@ def test_live_dubs_a_stream_in_real_time_and_to_a_pipe(bundle, tmp_path):
     assert len(proc.stdout) == 50 * 256 * 256 * 3 and b"frames dropped" in proc.stderr
     assert_one_line_error(nvp("live", tmp_path / "none.wav", "--person", bundle, "-o", out), "no such")
     assert_one_line_error(nvp("live", wav, "--person", bundle), "--raw")
+    (tmp_path / "gaze.csv").write_text("time_s,yaw_deg,pitch_deg\n0,60,0\n")
+    proc = nvp("live", wav, "--person", bundle, "-o", tmp_path / "x.mp4", "--gaze", tmp_path / "gaze.csv")
+    assert_one_line_error(proc, "45")
 
 
 def test_batch_dub_of_ten_files_goes_on_past_a_failing_one(bundle, tmp_path):

@@ -133,17 +133,22 @@ def live(
     max_lag_s: float = MAX_LAG_S,
     lookahead_s: float | None = None,
     status=None,
+    gaze: str | Path = "footage",
 ) -> LiveResult:
     """Dub the person of ``bundle_dir`` live from ``source`` (an audio/video file, or ``"-"``: raw PCM on
     stdin at ``rate`` Hz). Frames go to ``output`` (fragmented MP4 with the audio) and/or ``raw_out``
-    (RGB24, ``width × height × 3`` bytes per frame). ``status(text)`` is called about once a second."""
+    (RGB24, ``width × height × 3`` bytes per frame). ``status(text)`` is called about once a second.
+    ``gaze``: where the eyes look, as :func:`nvp.app.dub.dub` takes it (a gaze file's times count from the
+    stream's start)."""
     from nvp.app.dub import dubbed_vertices, load_person
     from nvp.artifact import check_output_file
     from nvp.bundle import PersonBundle
+    from nvp.gaze import gaze_at, read_gaze_file
     from nvp.media import VideoWriter
     from nvp.provenance import synthetic_mark
     from nvp.stream import LOOKAHEAD_S, ExpressionStream
     from nvp.threads import ThreadGovernor, frame_workers
+    from renderer.eyes import turn_eyes
     from renderer.mouths import EntryChooser
     from renderer.render import FrameRenderer
     from renderer.workers import RenderWorkers
@@ -161,11 +166,15 @@ def live(
     bundle = PersonBundle.load(bundle_dir)
     person = load_person(bundle, style)
     seq, model = person.tracked, person.model
+    if str(gaze) != "footage" and seq.iris is None:
+        raise NvpError("this person was tracked before nvp measured gaze; run nvp fit again for --gaze")
+    looks = None if str(gaze) in ("footage", "camera") else read_gaze_file(Path(gaze))
     lookahead = LOOKAHEAD_S if lookahead_s is None else lookahead_s
     stream = ExpressionStream(person.style, person.net, seq.fps, lookahead)
     weights = model.mouth_weights()
     footage = _target_frames(bundle.path("target"), seq.num_frames, seq.fps)
-    tags = synthetic_mark("live", bundle=bundle.manifest.get("id", bundle.root.name), **person.mark)
+    asked = {} if str(gaze) == "footage" else {"gaze": Path(gaze).name}
+    tags = synthetic_mark("live", bundle=bundle.manifest.get("id", bundle.root.name), **person.mark, **asked)
     totals: list[int] = []  # samples received in all after each block
     times: list[float] = []  # when each block arrived
     latency: list[float] = []
@@ -198,6 +207,13 @@ def live(
             face = renderer.prepare(frame, k, dubbed_vertices(model, seq, k, e, weights, tracked), tracked)
             return face, renderer.entry_costs(face) if renderer.mouths is not None else None
 
+        def paste(renderer: FrameRenderer, j: int, face, mouth: int | None) -> np.ndarray:
+            image = renderer.composite(face, mouth)
+            if str(gaze) == "footage":
+                return image
+            look = None if looks is None else gaze_at(looks, np.array([j / seq.fps]))[0]
+            return turn_eyes(model, seq, image, face.index, look)
+
         def emit(expressions: np.ndarray) -> None:
             """Renders and writes the frames of one block of audio (all of them before the next block is
             read): their networks side by side, the bank entries in order, then the pastes side by side."""
@@ -219,7 +235,7 @@ def live(
                 if future is not None:
                     face, costs = future.result()
                     entry = teeth.push(costs)[0] if costs is not None else None
-                    future = pool.submit(partial(FrameRenderer.composite, face=face, mouth=entry))
+                    future = pool.submit(partial(paste, j=j, face=face, mouth=entry))
                 pasting.append((j, future))
             for j, future in pasting:
                 if future is not None:

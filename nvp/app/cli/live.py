@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from nvp.app.cli.common import add_device_arg, add_style_arg, device
+from nvp.app.cli.common import add_device_arg, add_gaze_arg, add_style_arg, device
 
 
 def add_parser(sub) -> None:
@@ -27,6 +27,7 @@ def add_parser(sub) -> None:
     p.add_argument(
         "--max-lag", type=float, default=1.0, help="seconds behind the audio after which frames are dropped"
     )
+    add_gaze_arg(p)
     add_style_arg(p)
     add_device_arg(p)
     p.set_defaults(func=run)
@@ -61,6 +62,7 @@ def run(args: argparse.Namespace) -> int:
         realtime=args.realtime,
         rate=args.rate,
         style=args.style,
+        gaze=args.gaze,
         max_lag_s=args.max_lag,
         status=status,
     )
