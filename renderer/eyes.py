@@ -16,8 +16,21 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from nvp.gaze import EYES, footage_gaze, gaze_vectors, iris_pixels, towards_camera
+from nvp.gaze import EYES, footage_gaze, gaze_from_iris, gaze_vectors, iris_pixels, towards_camera
 
+MAX_TURN_DEG = 15.0
+"""The farthest an eye is turned from where it looks in the footage (degrees): the irises of people who read
+a script beside the camera are 5-15 degrees off; beyond, moving the footage's pixels shows (an iris pulled
+out from behind a lid or a corner, half an eye of white invented) and mediapipe's iris of an eye turned far
+aside is itself up to half a radius off."""
+MIN_IRIS_PX = 6.0
+"""Smallest iris radius (pixels) whose eye is turned. Below it (an eye under about 30 pixels wide) the few
+pixels of white, filled in flat, make a staring eye (looked at on two 224² test people, iris 4 px), and
+mediapipe's iris is off by a good part of its radius."""
+SIDEWAYS = (3.5, 4.0)
+"""Eye width over iris radius below which an eye is left alone (the far eye of a head turned aside, seen
+edge-on: a few pixels of white, no room to move an iris) and from which it moves all the way. Facing eyes
+of test people: 4-5 (5th percentile 4.0-4.9); the far eye of a three-quarter view: 2.5-3.9."""
 OPEN_FROM = 0.5
 """Lid gap over iris radius at and below which an eye is left alone (closed or closing: a blink). Open eyes
 of ten test people: median 1.2-1.8, 10th percentile 0.65-1.55, blinks below 0.5."""
@@ -57,21 +70,44 @@ def openness(outline: np.ndarray, radius: float) -> float:
     return float(gap / radius) if radius > 0 else 0.0
 
 
+def within_reach(now: np.ndarray, asked: np.ndarray) -> np.ndarray:
+    """``(..., 3)`` unit directions ``asked`` (camera frame), each turned at most :data:`MAX_TURN_DEG` away
+    from where its eye looks ``now`` (towards ``asked``, along the great circle); ``asked`` itself where
+    ``now`` is unknown (NaN)."""
+    now = np.asarray(now, np.float64)
+    asked = np.asarray(asked, np.float64) / np.linalg.norm(asked, axis=-1, keepdims=True)
+    cos = np.clip((now * asked).sum(-1, keepdims=True), -1, 1)
+    angle = np.arccos(cos)
+    limit = np.radians(MAX_TURN_DEG)
+    # the part of ``asked`` square to ``now``: the way to turn
+    side = asked - cos * now
+    side /= np.maximum(np.linalg.norm(side, axis=-1, keepdims=True), 1e-12)
+    turned = np.cos(limit) * now + np.sin(limit) * side
+    return np.where(angle > limit, turned, asked)
+
+
 def eye_moves(model, seq, index: int, directions: np.ndarray, centres: np.ndarray | None = None) -> list:
     """The :class:`EyeMove` of each eye of footage frame ``index`` of ``seq`` (its tracking, with iris) to
     look along camera-frame ``directions`` ``(2, 3)`` (left eye first), from eyeball ``centres`` ``(2, 3)``
-    (default: the tracked head's, :func:`nvp.gaze.footage_gaze`). An eye without iris landmarks (no face
-    found) or closing (:data:`OPEN_FROM`) is left out; a half-open one moves part of the way."""
+    (default: the tracked head's, :func:`nvp.gaze.footage_gaze`), or as far towards them as
+    :data:`MAX_TURN_DEG` lets it (:func:`within_reach`). An eye without iris landmarks (no face found) or
+    closing (:data:`OPEN_FROM`), seen from the side (:data:`SIDEWAYS`) or too small (:data:`MIN_IRIS_PX`) is
+    left out; a half-open one moves part of the way."""
     if centres is None:
         centres = footage_gaze(model, seq, np.array([index]))[0][0]
-    to = iris_pixels(centres, directions, seq.focal, seq.center)
+    now = gaze_from_iris(centres, seq.iris[index, :, :2], seq.focal, seq.center)
+    to = iris_pixels(centres, within_reach(now, directions), seq.focal, seq.center)
     moves = []
     for e, group in enumerate(EYES):
         outline = seq.landmarks[index, model.landmark_groups[group]].astype(np.float64)
         iris = seq.iris[index, e].astype(np.float64)
         if not (np.isfinite(outline).all() and np.isfinite(iris).all() and np.isfinite(to[e]).all()):
             continue
+        if iris[2] < MIN_IRIS_PX:
+            continue
         share = np.clip((openness(outline, iris[2]) - OPEN_FROM) / (OPEN_FULL - OPEN_FROM), 0, 1)
+        wide = np.ptp(outline[:, 0]) / iris[2] if iris[2] > 0 else 0.0
+        share *= np.clip((wide - SIDEWAYS[0]) / (SIDEWAYS[1] - SIDEWAYS[0]), 0, 1)
         if share > 0:
             moves.append(EyeMove(outline, iris, iris[:2] + share * (to[e] - iris[:2])))
     return moves

@@ -100,3 +100,15 @@ def test_turn_eyes_looks_into_the_lens_or_along_a_gaze_and_needs_the_iris(face_m
     assert turn_eyes(face_model, seq, frame, 2).shape == frame.shape
     with pytest.raises(NvpError, match="track again"):
         turn_eyes(face_model, dataclasses.replace(seq, iris=None), frame, 2)
+
+
+def test_an_eye_is_turned_at_most_max_turn_towards_what_is_asked():
+    from nvp.gaze import angle_between
+    from renderer.eyes import MAX_TURN_DEG, within_reach
+
+    now = np.array([[0.0, 0.0, -1.0]] * 3)
+    degrees = np.radians([5.0, MAX_TURN_DEG + 1, 60.0])
+    asked = np.stack([np.sin(degrees), 0 * degrees, -np.cos(degrees)], 1)
+    reached = within_reach(now, asked)
+    np.testing.assert_allclose(angle_between(reached, now), [5.0, MAX_TURN_DEG, MAX_TURN_DEG], atol=1e-6)
+    assert reached[2, 0] > 0 and abs(reached[2, 1]) < 1e-12  # on the way to what was asked

@@ -73,7 +73,9 @@ def test_dub_lasts_as_long_as_the_audio_and_is_marked(bundle, demo_clip, tmp_pat
     assert nvp("verify", demo_clip.path).returncode == 0  # the demo target is synthetic too
 
 
-def test_dub_turns_only_the_eyes_where_asked_and_a_bad_gaze_file_is_one_error(bundle, tmp_path):
+def test_dub_turns_only_the_eyes_where_asked_and_a_bad_gaze_file_is_one_error(bundle, tmp_path, monkeypatch):
+    import renderer.eyes
+    from nvp.app.dub import dub
     from nvp.media import iter_frames
     from nvp.tracked import TrackedSequence
 
@@ -82,12 +84,17 @@ def test_dub_turns_only_the_eyes_where_asked_and_a_bad_gaze_file_is_one_error(bu
     aside = tmp_path / "aside.json"
     aside.write_text(json.dumps([{"time_s": 0, "yaw_deg": 25, "pitch_deg": 0}]))
     made = {}
-    for name, gaze in {"today": [], "footage": ["--gaze", "footage"], "aside": ["--gaze", aside]}.items():
+    for name, gaze in {"today": [], "footage": ["--gaze", "footage"], "small": ["--gaze", aside]}.items():
         proc = nvp("dub", wav, "--person", bundle, "-o", tmp_path / f"{name}.mp4", *gaze)
         assert proc.returncode == 0, proc.stderr
         made[name] = np.stack(list(iter_frames(tmp_path / f"{name}.mp4"))).astype(int)
     np.testing.assert_array_equal(made["footage"], made["today"])  # the default is today's dub
-    # 25 degrees to the side move the irises; away from the eyes only the encoder's noise differs
+    # the demo's eyes (256² footage) are too small to turn: the dub says so and leaves them
+    assert "eyes are small" in proc.stderr
+    # turned anyway, 25 degrees to the side move the irises; away from the eyes only the encoder's noise
+    monkeypatch.setattr(renderer.eyes, "MIN_IRIS_PX", 0.0)
+    dub(wav, bundle, tmp_path / "aside.mp4", progress=False, gaze=aside)
+    made["aside"] = np.stack(list(iter_frames(tmp_path / "aside.mp4"))).astype(int)
     seq = TrackedSequence.load(bundle / "tracked")
     model = default_face_model()
     eyes = np.zeros(made["today"].shape[1:3], bool)
@@ -96,9 +103,8 @@ def test_dub_turns_only_the_eyes_where_asked_and_a_bad_gaze_file_is_one_error(bu
         (x0, y0), (x1, y1) = np.floor(pts.min(0)).astype(int) - 8, np.ceil(pts.max(0)).astype(int) + 8
         eyes[max(y0, 0) : y1, max(x0, 0) : x1] = True
     change = np.abs(made["aside"] - made["today"]).max(-1)
-    assert (
-        change[:, eyes].max() > 60 and np.percentile(change[:, ~eyes], 99) < 8 and change[:, ~eyes].mean() < 1
-    )
+    assert change[:, eyes].max() > 40, change[:, eyes].max()
+    assert np.percentile(change[:, ~eyes], 99) < 8 and change[:, ~eyes].mean() < 1
     proc = nvp("verify", tmp_path / "aside.mp4", "--json")
     assert "aside.json" in proc.stdout, proc.stdout  # the output says where its eyes were turned to look
     for text, says in [("time_s,yaw_deg\n0,5\n", "pitch_deg"), ("time_s,yaw_deg,pitch_deg\n0,90,0\n", "45")]:

@@ -233,6 +233,16 @@ def eye_requests(gaze: str | Path, seq: TrackedSequence, frames: int) -> np.ndar
         return None
     if seq.iris is None:
         raise NvpError("this person was tracked before nvp measured gaze; run nvp fit again for --gaze")
+    from renderer.eyes import MIN_IRIS_PX
+
+    radius = float(np.nanmedian(seq.iris[..., 2])) if np.isfinite(seq.iris[..., 2]).any() else 0.0
+    if radius < MIN_IRIS_PX:
+        log.warning(
+            "the eyes are small in this footage (iris %.1f px, %.0f needed to turn them): --gaze leaves "
+            "most of them as they are",
+            radius,
+            MIN_IRIS_PX,
+        )
     if str(gaze) == "camera":
         return np.full((frames, 2), np.nan, np.float32)
     return gaze_track(gaze, frames, seq.fps)
