@@ -112,3 +112,22 @@ def test_an_eye_is_turned_at_most_max_turn_towards_what_is_asked():
     reached = within_reach(now, asked)
     np.testing.assert_allclose(angle_between(reached, now), [5.0, MAX_TURN_DEG, MAX_TURN_DEG], atol=1e-6)
     assert reached[2, 0] > 0 and abs(reached[2, 1]) < 1e-12  # on the way to what was asked
+
+
+def test_a_dub_asks_for_the_eyes_it_can_turn_and_says_when_it_cannot(face_model, tmp_path):
+    import dataclasses
+
+    from nvp.app.dub import eye_requests
+    from nvp.errors import NvpError
+    from tracking.synthetic import synthetic_tracked
+
+    seq = synthetic_tracked(face_model, frames=3, size=256, focal=500.0)
+    assert eye_requests("footage", seq, 5) is None
+    assert np.isnan(eye_requests("camera", seq, 5)).all()  # into the lens, wherever the head is
+    gaze = tmp_path / "g.csv"
+    gaze.write_text("time_s,yaw_deg,pitch_deg\n0,10,-5\n")
+    np.testing.assert_allclose(np.degrees(eye_requests(gaze, seq, 5)), [[10, -5]] * 5, atol=1e-4)
+    with pytest.raises(NvpError, match="fit again"):
+        eye_requests("camera", dataclasses.replace(seq, iris=None), 5)
+    with pytest.raises(NvpError, match="cannot read the gaze file"):
+        eye_requests(tmp_path / "missing.csv", seq, 5)
