@@ -4,9 +4,11 @@ Inside each eye opening (its outline from tracking) the iris, its centre and rad
 landmarks, is moved to where an eyeball of the tracked head looking the asked way shows it
 (:func:`nvp.gaze.iris_pixels`), over the white of the eye filled in where it was (:func:`turned_eye`).
 The footage's own pixels move: no network paints them, so the eyes keep the footage's sharpness and light.
-Lids, lashes and blinks stay the footage's and nothing outside the openings changes (no seam to hide). A
-closing eye is let go gradually (:data:`OPEN_FROM`, :data:`OPEN_FULL`): in a blink the iris is hidden and
-its landmarks mean nothing.
+The lids follow a raised or lowered gaze, the skin around them warped smoothly to the patch's unchanged
+border (no seam to hide); lashes and blinks stay the footage's. Limits: a turn of at most
+:data:`MAX_TURN_DEG`, no eye seen edge-on (:data:`SIDEWAYS`) or smaller than :data:`MIN_IRIS_PX`, and a
+closing eye let go gradually (:data:`OPEN_FROM`, :data:`OPEN_FULL`): in a blink the iris is hidden and its
+landmarks mean nothing. Measured in docs/experiments/gaze.md.
 """
 
 from __future__ import annotations
@@ -106,7 +108,7 @@ def eye_moves(model, seq, index: int, directions: np.ndarray, centres: np.ndarra
         if iris[2] < MIN_IRIS_PX:
             continue
         share = np.clip((openness(outline, iris[2]) - OPEN_FROM) / (OPEN_FULL - OPEN_FROM), 0, 1)
-        wide = np.ptp(outline[:, 0]) / iris[2] if iris[2] > 0 else 0.0
+        wide = np.ptp(outline[:, 0]) / iris[2]
         share *= np.clip((wide - SIDEWAYS[0]) / (SIDEWAYS[1] - SIDEWAYS[0]), 0, 1)
         if share > 0:
             moves.append(EyeMove(outline, iris, iris[:2] + share * (to[e] - iris[:2])))

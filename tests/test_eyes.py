@@ -131,3 +131,16 @@ def test_a_dub_asks_for_the_eyes_it_can_turn_and_says_when_it_cannot(face_model,
         eye_requests("camera", dataclasses.replace(seq, iris=None), 5)
     with pytest.raises(NvpError, match="cannot read the gaze file"):
         eye_requests(tmp_path / "missing.csv", seq, 5)
+
+
+def test_the_thin_plate_spline_meets_its_points_and_keeps_an_affine_map_affine():
+    from renderer.eyes import thin_plate_spline
+
+    rng = np.random.default_rng(0)
+    points = rng.uniform(0, 50, (12, 2))
+    values = points + rng.normal(0, 2, (12, 2))
+    np.testing.assert_allclose(thin_plate_spline(points, values)(points), values, atol=1e-6)
+    affine = points @ np.array([[1.1, 0.2], [-0.1, 0.9]]) + [3.0, -4.0]
+    query = rng.uniform(0, 50, (30, 2))
+    expected = query @ np.array([[1.1, 0.2], [-0.1, 0.9]]) + [3.0, -4.0]
+    np.testing.assert_allclose(thin_plate_spline(points, affine)(query), expected, atol=1e-6)
