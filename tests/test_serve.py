@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import hashlib
 import http.client
+import io
 import json
 import os
 import random
@@ -585,6 +586,33 @@ def test_say_text_is_never_an_option_and_limits_are_clear(make_client, demo_clip
     c.app.limits = replace(c.app.limits, min_free_mb=0)
     status, err = c.json("POST", "/api/people?name=x", demo_clip.path.read_bytes(), "video/mp4")
     assert status == 413 and "minutes" in err["error"]  # 1.2 s > 0.6 s
+    assert list((c.app.data / "uploads").iterdir()) == []
+
+
+def test_a_dub_or_say_with_eye_contact_asks_for_it_and_nothing_else(make_client):
+    c = make_client(start=False)
+    pid = "p-00000000000b"
+    (c.app.data / "people" / pid).mkdir()
+    (c.app.data / "people" / pid / "bundle.json").write_text("{}")
+    c.app._save_names({pid: {"name": "b", "created": 0.0}})
+    body = b'{"text": "hello", "gaze": "camera"}'
+    status, job = c.json("POST", f"/api/people/{pid}/say", body, "application/json")
+    assert status == 201 and c.app.store.get(job["id"]).args[-4:-2] == ["--gaze", "camera"]
+    c.app.worker.cancel(job["id"])
+    wav = io.BytesIO()
+    sf.write(wav, np.zeros(8000, np.float32), 16000, format="WAV")
+    status, job = c.json("POST", f"/api/people/{pid}/dubs?gaze=camera", wav.getvalue(), "audio/wav")
+    assert status == 201, job
+    assert c.app.store.get(job["id"]).args[-2:] == ["--gaze", "camera"]
+    c.app.worker.cancel(job["id"])
+    # a gaze file would name a file on the server: only footage or camera, refused before any upload
+    for bad in ("%2Fetc%2Fpasswd", "left"):
+        status, err = c.json("POST", f"/api/people/{pid}/dubs?gaze={bad}", b"RIFF....", "audio/wav")
+        assert status == 400 and "footage or camera" in err["error"]
+    status, err = c.json(
+        "POST", f"/api/people/{pid}/say", b'{"text": "hi", "gaze": "/x.csv"}', "application/json"
+    )
+    assert status == 400 and "footage or camera" in err["error"]
     assert list((c.app.data / "uploads").iterdir()) == []
 
 

@@ -16,8 +16,8 @@ API (JSON unless said; every ``/api/`` call carries the token; ids are made by t
 ``POST /api/people?name=N[&minutes=M]``    body: a video file → a person and their fit job
 ``GET /api/people/<id>/thumbnail.jpg``     a frame of their footage (JPEG)
 ``DELETE /api/people/<id>``                remove a person (not while one of their jobs runs)
-``POST /api/people/<id>/dubs``             body: an audio file → a dub job
-``POST /api/people/<id>/say``              body ``{"text": "...", "voice": "..."}`` → a say job
+``POST /api/people/<id>/dubs``             body: an audio file → a dub job (``?gaze=camera``: eye contact)
+``POST /api/people/<id>/say``              body ``{"text": "...", "voice": "..."}`` → a say job (``"gaze"``)
 ``GET /api/jobs`` / ``GET /api/jobs/<id>`` jobs: state, stage, percent, time left, message, result
 ``POST /api/jobs/<id>/cancel``             cancel a queued or running job
 ``GET /api/jobs/<id>/preview.png``         a fit's latest renderer preview (ground truth | render | final)
@@ -49,7 +49,7 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from urllib.parse import parse_qs, urlsplit
 
-from nvp.app.serve_app import App
+from nvp.app.serve_app import App, gaze_args
 from nvp.app.serve_limits import LimitedServer, Limits, body_length, check_free_disk, media_type
 from nvp.app.serve_security import (
     MIN_TOKEN_CHARS,
@@ -356,11 +356,13 @@ class Handler(BaseHTTPRequestHandler):
         self._json({"deleted": pid})
 
     def r_new_dub(self, q, pid) -> None:
+        gaze = q.get("gaze", ["footage"])[0]
+        gaze_args(gaze)  # a bad request is refused before its upload is read
         self.app.ready_person(pid)
         self.app.check_queue()
         upload = self._receive("audio")
         try:
-            job = self.app.add_dub(pid, upload)
+            job = self.app.add_dub(pid, upload, gaze)
         except BaseException:
             upload.unlink(missing_ok=True)
             raise
@@ -370,7 +372,7 @@ class Handler(BaseHTTPRequestHandler):
         body = self._body_json()
         self.app.ready_person(pid)
         self.app.check_queue()
-        job = self.app.add_say(pid, str(body.get("text", "")), body.get("voice"))
+        job = self.app.add_say(pid, str(body.get("text", "")), body.get("voice"), body.get("gaze", "footage"))
         self._json(self.app.job_view(job), HTTPStatus.CREATED)
 
     def r_jobs(self, q) -> None:

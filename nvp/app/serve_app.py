@@ -216,18 +216,18 @@ class App:
             raise ApiError(HTTPStatus.CONFLICT, f"{pid} is not fitted yet")
         return folder
 
-    def add_dub(self, pid: str, upload: Path) -> Job:
+    def add_dub(self, pid: str, upload: Path, gaze: str = "footage") -> Job:
         folder = self.ready_person(pid)
         jid = new_id("job")
         out = self.data / "dubs" / f"{jid}.mp4"
-        job = self.store.add(
-            Job(jid, "dub", pid, ["dub", str(upload), "--person", str(folder), "-o", str(out)], str(out))
-        )
+        args = ["dub", str(upload), "--person", str(folder), "-o", str(out), *gaze_args(gaze)]
+        job = self.store.add(Job(jid, "dub", pid, args, str(out)))
         self.worker.wake.set()
         return job
 
-    def add_say(self, pid: str, text: str, voice: str | None) -> Job:
+    def add_say(self, pid: str, text: str, voice: str | None, gaze: str = "footage") -> Job:
         folder = self.ready_person(pid)
+        eyes = gaze_args(gaze)
         text = _CONTROL.sub(" ", text).strip()
         if not text or len(text) > self.limits.max_text_chars:
             raise ApiError(
@@ -235,7 +235,7 @@ class App:
             )
         jid = new_id("job")
         out = self.data / "dubs" / f"{jid}.mp4"
-        args = ["say", "--person", str(folder), "-o", str(out)]
+        args = ["say", "--person", str(folder), "-o", str(out), *eyes]
         if voice:
             if not isinstance(voice, str) or not re.fullmatch(r"[A-Za-z0-9_\-]{1,40}", voice):
                 raise ApiError(HTTPStatus.BAD_REQUEST, "a voice is the name of an installed voice")
@@ -311,6 +311,15 @@ class App:
             tmp.write_bytes(jpg.tobytes())
             tmp.replace(thumb)
         return thumb.read_bytes()
+
+
+def gaze_args(gaze: object) -> list[str]:
+    """The command-line option of a job's ``gaze``: ``"footage"`` (none: the footage's eyes) or
+    ``"camera"`` (eye contact). A gaze file is not taken from the web (it would name a file on the
+    server)."""
+    if gaze not in ("footage", "camera"):
+        raise ApiError(HTTPStatus.BAD_REQUEST, "gaze is footage or camera")
+    return [] if gaze == "footage" else ["--gaze", "camera"]
 
 
 def check_id(value: str) -> str:
