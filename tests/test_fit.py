@@ -130,6 +130,7 @@ def test_the_tracking_keeps_the_iris_and_says_where_the_eyes_look(face_model, re
 
     seq, truth = recovered
     assert seq.iris.shape == (60, 2, 3) and np.isfinite(seq.iris).all()
+    assert abs(seq.info["eye_spread_cm"]) < 0.05  # the mesh's eyes are where the truth's are (0.5 mm)
     _, looks = footage_gaze(face_model, seq)
     wanted = np.einsum("tij,tj->ti", truth["rotation"], gaze_vectors(truth["gaze"]))
     error = angle_between(looks, wanted[:, None])

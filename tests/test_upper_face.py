@@ -167,3 +167,24 @@ def test_gaze_angles_and_iris_pixels_invert_each_other():
     off = gaze_from_iris(centres[:1], pixels[:1] + 500, 800.0, np.array([320.0, 240.0]))
     assert np.isfinite(off).all() and abs(np.linalg.norm(off) - 1) < 1e-9
     assert angle_between(towards_camera(centres[0]), -centres[0]) < 1e-5  # arccos near 1: 1e-6 degrees
+
+
+def test_the_eyeballs_spread_so_that_both_eyes_look_the_same_way(face_model):
+    import dataclasses
+
+    from nvp.gaze import SPREAD_KEY, angle_between, eye_spread, footage_gaze
+    from tracking.synthetic import synthetic_tracked
+
+    seq = synthetic_tracked(face_model, frames=30, size=512, focal=1000.0)
+    assert abs(eye_spread(face_model, seq)) < 0.01  # the truth: nothing to correct
+    # each iris seen 1.5 px further out than the mesh's eyes put it: the eyes seem to look apart
+    iris = seq.iris.copy()
+    iris[:, 0, 0] += 1.5  # the face's left eye is on the image's right
+    iris[:, 1, 0] -= 1.5
+    apart = dataclasses.replace(seq, iris=iris)
+    _, looks = footage_gaze(face_model, apart)
+    assert np.median(angle_between(looks[:, 0], looks[:, 1])) > 3
+    spread = eye_spread(face_model, apart)
+    assert spread > 0.02
+    _, looks = footage_gaze(face_model, dataclasses.replace(apart, info={SPREAD_KEY: spread}))
+    assert np.median(angle_between(looks[:, 0], looks[:, 1])) < 0.5

@@ -13,7 +13,7 @@ import torch
 
 from nvp.errors import NoFaceError
 from nvp.face_model import FaceModel, default_face_model
-from nvp.gaze import iris_circles
+from nvp.gaze import SPREAD_KEY, eye_spread, iris_circles
 from nvp.geometry import pinhole, posed
 from nvp.metrics import interocular_distance
 from nvp.tracked import TrackedSequence
@@ -137,7 +137,7 @@ def fit_detections(
         float(focal),
         np.nanmedian(err),
     )
-    return TrackedSequence(
+    seq = TrackedSequence(
         fps=det.fps,
         width=det.width,
         height=det.height,
@@ -154,6 +154,8 @@ def fit_detections(
         info={"fit_config": asdict(cfg), "interocular_px": iod_px, "fit_seconds": round(elapsed, 2)},
         iris=iris_circles(np.where(found[:, None, None], det.points, np.nan)),
     )
+    # where this person's eyeballs sit sideways: the two eyes look the same way (nvp.gaze.eye_spread)
+    return dataclasses.replace(seq, info={**seq.info, SPREAD_KEY: eye_spread(model, seq)})
 
 
 def _scatter(values: np.ndarray, idx: np.ndarray, n: int) -> np.ndarray:

@@ -15,6 +15,7 @@ import numpy as np
 from nvp.artifact import file_sha256, load_artifact, save_artifact
 from nvp.errors import FormatError, NvpError
 from nvp.face_model import default_face_model
+from nvp.gaze import SPREAD_KEY
 from nvp.person import VideoSample
 from nvp.tracked import TrackedSequence
 
@@ -40,7 +41,7 @@ def tracked_cached(video: Path, cache: Path, progress: bool = True) -> TrackedSe
         seq = TrackedSequence.load(out)
         settings = json.loads(json.dumps(asdict(TrackingConfig())))  # as stored (tuples become lists)
         same = seq.face_model_sha256 == default_face_model().sha256 and seq.info.get("fit_config") == settings
-        if same and seq.iris is not None:  # made before tracking kept the iris: outdated
+        if same and seq.iris is not None and SPREAD_KEY in seq.info:  # else made before nvp measured gaze
             return seq
     except FormatError:
         pass
