@@ -81,9 +81,8 @@ def evaluate(video: Path, cache: Path, out: Path, crops: bool = True) -> dict:
     aside = np.einsum("tij,j->ti", seq.rotation, gaze_vectors(ASIDE))[:, None].repeat(2, 1)
     requests = {"camera": lens, "aside": aside}
     groups = [model.landmark_groups[g] for g in ("left_eye", "right_eye")]
-    rows = {
-        k: {"err": [], "both": [], "short": [], "hf_box": [], "hf_open": [], "seam": []} for k in requests
-    }
+    kinds = ("err", "both", "short", "hf_box", "hf_open", "seam")
+    rows = {k: {**{kind: [] for kind in kinds}, "by_frame": {}} for k in requests}
     full_open = []
     detectors = {k: LandmarkDetector() for k in requests}
     saved = {}
@@ -107,6 +106,7 @@ def evaluate(video: Path, cache: Path, out: Path, crops: bool = True) -> dict:
                 r = rows[name]
                 r["err"].append(angle_between(measured, wanted[k]))
                 r["both"].append(angle_between(measured.mean(0), wanted[k].mean(0)))  # the two eyes' mean
+                r["by_frame"][k] = measured.mean(0)
                 # how much of the asked turn the measurement sees, in yaw and pitch (face frame)
                 face = [gaze_angles(x @ seq.rotation[k]) for x in (footage[k], wanted[k], measured)]
                 r["short"].append(np.degrees((face[1] - face[2]).mean(0)))
@@ -137,8 +137,19 @@ def evaluate(video: Path, cache: Path, out: Path, crops: bool = True) -> dict:
     opened = np.array(full_open)
     off_lens = angle_between(footage, lens)[opened]
     between = angle_between(footage[:, 0], footage[:, 1])[opened]
+    # how much the gaze moves from one open frame to the next (flicker): the footage's, then the outputs'
+
+    def both_open(k: int) -> bool:
+        return k + 1 < len(opened) and bool(opened[k] and opened[k + 1])
+
+    steady = {"footage": dict(enumerate(footage.mean(1))), **{k: r["by_frame"] for k, r in rows.items()}}
+    jitter = {
+        name: float(np.nanmedian([angle_between(d[k], d[k + 1]) for k in d if k + 1 in d and both_open(k)]))
+        for name, d in steady.items()
+    }
     result = {
         "video": video.name,
+        "jitter_deg": jitter,
         "frames": seq.num_frames,
         "open": int(np.sum(full_open)),
         "iris_px": float(np.nanmedian(seq.iris[..., 2])),
@@ -199,6 +210,7 @@ def main(argv: list[str] | None = None) -> int:
             _errors(r["aside"]),
             f"{r['camera']['hf_box']:.3f} / {r['camera']['hf_open']:.3f}",
             f"{r['camera']['seam']:.3f}",
+            f"{r['jitter_deg']['footage']:.2f} → {r['jitter_deg']['camera']:.2f}",
         ]
         for r in results
     ]
@@ -212,6 +224,7 @@ def main(argv: list[str] | None = None) -> int:
         "aside: error °, both eyes / each eye (p90)",
         "HF eye box / opening",
         "seam",
+        "gaze change frame to frame °: footage → camera",
     ]
     table = markdown_table([dict(zip(head, r, strict=True)) for r in rows])
     print(table)
