@@ -226,15 +226,24 @@ def dub(
 def eye_requests(gaze: str | Path, seq: TrackedSequence, frames: int) -> np.ndarray | None:
     """Where the eyes of each of ``frames`` output frames should look: None for the footage's own gaze,
     else ``(T, 2)`` yaw and pitch (a gaze file) or NaN (into the lens). Raises NvpError for a bad gaze file
-    or a person tracked before nvp measured the iris."""
+    or a person tracked before nvp measured the iris (:func:`check_gaze`)."""
     from nvp.gaze import gaze_track
 
     if str(gaze) == "footage":
         return None
-    if seq.iris is None:
-        raise NvpError("this person was tracked before nvp measured gaze; run nvp fit again for --gaze")
+    check_gaze(seq)
+    if str(gaze) == "camera":
+        return np.full((frames, 2), np.nan, np.float32)
+    return gaze_track(gaze, frames, seq.fps)
+
+
+def check_gaze(seq: TrackedSequence) -> None:
+    """Before a dub whose eyes are turned: its person's tracking holds the iris (else NvpError), and a
+    warning when the footage's eyes are too small to turn (:data:`renderer.eyes.MIN_IRIS_PX`)."""
     from renderer.eyes import MIN_IRIS_PX
 
+    if seq.iris is None:
+        raise NvpError("this person was tracked before nvp measured gaze; run nvp fit again for --gaze")
     radius = float(np.nanmedian(seq.iris[..., 2])) if np.isfinite(seq.iris[..., 2]).any() else 0.0
     if radius < MIN_IRIS_PX:
         log.warning(
@@ -243,9 +252,6 @@ def eye_requests(gaze: str | Path, seq: TrackedSequence, frames: int) -> np.ndar
             radius,
             MIN_IRIS_PX,
         )
-    if str(gaze) == "camera":
-        return np.full((frames, 2), np.nan, np.float32)
-    return gaze_track(gaze, frames, seq.fps)
 
 
 def _eyes_turned(model: FaceModel, seq: TrackedSequence, first: int, looks: np.ndarray):

@@ -140,7 +140,7 @@ def live(
     (RGB24, ``width × height × 3`` bytes per frame). ``status(text)`` is called about once a second.
     ``gaze``: where the eyes look, as :func:`nvp.app.dub.dub` takes it (a gaze file's times count from the
     stream's start)."""
-    from nvp.app.dub import dubbed_vertices, load_person
+    from nvp.app.dub import check_gaze, dubbed_vertices, load_person
     from nvp.artifact import check_output_file
     from nvp.bundle import PersonBundle
     from nvp.gaze import gaze_at, read_gaze_file
@@ -166,8 +166,8 @@ def live(
     bundle = PersonBundle.load(bundle_dir)
     person = load_person(bundle, style)
     seq, model = person.tracked, person.model
-    if str(gaze) != "footage" and seq.iris is None:
-        raise NvpError("this person was tracked before nvp measured gaze; run nvp fit again for --gaze")
+    if str(gaze) != "footage":
+        check_gaze(seq)
     looks = None if str(gaze) in ("footage", "camera") else read_gaze_file(Path(gaze))
     lookahead = LOOKAHEAD_S if lookahead_s is None else lookahead_s
     stream = ExpressionStream(person.style, person.net, seq.fps, lookahead)
