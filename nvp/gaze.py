@@ -213,6 +213,12 @@ def footage_gaze(
     return centres, gaze_from_iris(centres, seq.iris[frames, :, :2], seq.focal, seq.center)
 
 
+def iris_size(seq) -> float:
+    """The median iris radius (pixels) of a tracking with ``iris`` (0 when no frame has one)."""
+    radius = seq.iris[..., 2]
+    return float(np.nanmedian(radius)) if np.isfinite(radius).any() else 0.0
+
+
 SPREAD_KEY = "eye_spread_cm"
 """Where a tracking keeps its person's :func:`eye_spread` (``TrackedSequence.info``)."""
 MAX_SPREAD_CM = 0.4

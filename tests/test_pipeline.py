@@ -49,6 +49,7 @@ def test_fit_writes_a_complete_bundle(bundle):
     assert not bundle.with_name("person.partial").exists()
     proc = nvp("info", bundle)
     assert "mouth-opening model: calibrated" in proc.stdout and "mouths: " in proc.stdout
+    assert "eyes: iris" in proc.stdout and "too small to turn" in proc.stdout  # 256²: irises under 6 px
     assert proc.returncode == 0 and "renderer preset: cpu" in proc.stdout, proc.stderr
 
 

@@ -240,11 +240,12 @@ def eye_requests(gaze: str | Path, seq: TrackedSequence, frames: int) -> np.ndar
 def check_gaze(seq: TrackedSequence) -> None:
     """Before a dub whose eyes are turned: its person's tracking holds the iris (else NvpError), and a
     warning when the footage's eyes are too small to turn (:data:`renderer.eyes.MIN_IRIS_PX`)."""
+    from nvp.gaze import iris_size
     from renderer.eyes import MIN_IRIS_PX
 
     if seq.iris is None:
         raise NvpError("this person was tracked before nvp measured gaze; run nvp fit again for --gaze")
-    radius = float(np.nanmedian(seq.iris[..., 2])) if np.isfinite(seq.iris[..., 2]).any() else 0.0
+    radius = iris_size(seq)
     if radius < MIN_IRIS_PX:
         log.warning(
             "the eyes are small in this footage (iris %.1f px, %.0f needed to turn them): --gaze leaves "

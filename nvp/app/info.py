@@ -7,6 +7,20 @@ from pathlib import Path
 
 from nvp.bundle import PersonBundle
 from nvp.person import PersonStyle
+from nvp.tracked import TrackedSequence
+
+
+def _eyes(seq: TrackedSequence) -> str:
+    """What ``--gaze`` can do with a person: their tracking's iris (size) or why not."""
+    from nvp.gaze import iris_size
+    from renderer.eyes import MIN_IRIS_PX
+
+    if seq.iris is None:
+        return "no iris in the tracking (fitted before nvp measured gaze; a new nvp fit adds it for --gaze)"
+    radius = iris_size(seq)
+    if radius < MIN_IRIS_PX:
+        return f"iris {radius:.1f} px: too small to turn with --gaze (needs {MIN_IRIS_PX:.0f} px)"
+    return f"iris {radius:.1f} px: --gaze camera turns them into the lens"
 
 
 def bundle_summary(path: Path) -> Iterator[str]:
@@ -27,6 +41,7 @@ def bundle_summary(path: Path) -> Iterator[str]:
     opening = style.info.get("opening", "none (fitted before nvp's opening model)")
     opening = "calibrated" if style.opening else opening
     yield f"  talking style: rest mouth from {style.info.get('rest', '?')}; mouth-opening model: {opening}"
+    yield f"  eyes: {_eyes(TrackedSequence.load(b.path('tracked')))}"
     for name, facts in m["stages"].items():
         extra = ", ".join(f"{k} {v}" for k, v in facts.items() if k != "seconds")
         yield f"  {name}: {facts.get('seconds', 0):.1f} s" + (f" ({extra})" if extra else "")
