@@ -639,6 +639,9 @@ def test_live_dubs_a_stream_in_real_time_and_to_a_pipe(bundle, tmp_path):
     (tmp_path / "gaze.csv").write_text("time_s,yaw_deg,pitch_deg\n0,60,0\n")
     proc = nvp("live", wav, "--person", bundle, "-o", tmp_path / "x.mp4", "--gaze", tmp_path / "gaze.csv")
     assert_one_line_error(proc, "45")
+    (tmp_path / "gaze.csv").write_text("time_s,yaw_deg,pitch_deg\n0,10,0\n4,-10,5\n")
+    r = live(wav, bundle, tmp_path / "looked.mp4", realtime=False, gaze=tmp_path / "gaze.csv")
+    assert r.frames == 125 and verify(tmp_path / "looked.mp4").tags.get("nvp_gaze") == "gaze.csv"
 
 
 def test_batch_dub_of_ten_files_goes_on_past_a_failing_one(bundle, tmp_path):

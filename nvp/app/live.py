@@ -168,7 +168,7 @@ def live(
     seq, model = person.tracked, person.model
     if str(gaze) != "footage":
         check_gaze(seq)
-    looks = None if str(gaze) in ("footage", "camera") else read_gaze_file(Path(gaze))
+    gaze_rows = None if str(gaze) in ("footage", "camera") else read_gaze_file(Path(gaze))
     lookahead = LOOKAHEAD_S if lookahead_s is None else lookahead_s
     stream = ExpressionStream(person.style, person.net, seq.fps, lookahead)
     weights = model.mouth_weights()
@@ -211,7 +211,7 @@ def live(
             image = renderer.composite(face, mouth)
             if str(gaze) == "footage":
                 return image
-            look = None if looks is None else gaze_at(looks, np.array([j / seq.fps]))[0]
+            look = None if gaze_rows is None else gaze_at(gaze_rows, np.array([j / seq.fps]))[0]
             return turn_eyes(model, seq, image, face.index, look)
 
         def emit(expressions: np.ndarray) -> None:
