@@ -31,13 +31,19 @@ EYEBALL_RADIUS_CM = 1.2
 
 def eye_centres(vertices: np.ndarray, loops: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
     """``(2, 3)`` the face's left and right eyeball centres (the left one at larger x: the face looks at
-    the camera) for its vertices ``(V, 3)`` (face-model camera frame, cm, +Z away from the camera) and the
-    vertex loops of its two eye openings: the middle of each loop, moved :data:`EYEBALL_RADIUS_CM` back
-    into the head."""
-    v = np.asarray(vertices, np.float64)
-    centres = np.stack([v[np.asarray(loop)].mean(0) for loop in loops])
-    centres[:, 2] += EYEBALL_RADIUS_CM
+    the camera) for its vertices ``(V, 3)`` (face-model frame, cm, +Z away from the camera) and the
+    vertex loops of its two eye openings: :func:`eyeball_centres` of the unposed face."""
+    centres = eyeball_centres(vertices, np.eye(3), loops)
     return centres[np.argsort(-centres[:, 0])].astype(np.float32)
+
+
+REQUESTS = ("footage", "camera")
+"""The gaze requests that are not a file: the footage's own gaze, and into the lens."""
+
+
+def gaze_file(request: str | Path) -> Path | None:
+    """The gaze file a ``--gaze`` request names, or None for :data:`REQUESTS`."""
+    return None if str(request) in REQUESTS else Path(request)
 
 
 def read_gaze_file(path: Path) -> np.ndarray:

@@ -29,6 +29,7 @@ import numpy as np
 from nvp.bundle import PersonBundle, check_output_place
 from nvp.errors import NvpError
 from nvp.face_model import FaceModel
+from nvp.gaze import gaze_file
 from nvp.geometry import posed
 from nvp.tracked import TrackedSequence
 
@@ -161,9 +162,8 @@ def dub(
     from renderer.render import FrameRenderer
 
     t_start = time.perf_counter()
-    looked_up = () if str(gaze) in ("footage", "camera") else (gaze,)
     check_output_place(
-        check_output_file(output, inputs=(audio_path,)), (audio_path, bundle_dir, style, *looked_up)
+        check_output_file(output, inputs=(audio_path,)), (audio_path, bundle_dir, style, gaze_file(gaze))
     )
     bundle = PersonBundle.load(bundle_dir)
     rate = audio_rate(audio_path)
@@ -182,11 +182,7 @@ def dub(
     )
     order = target_frame_indices(n_out, seq.num_frames)
     weights = model.mouth_weights()
-    extra = {
-        **(details or {}),
-        **person.mark,
-        **({} if str(gaze) == "footage" else {"gaze": Path(gaze).name}),
-    }
+    extra = {**(details or {}), **person.mark, **gaze_mark(gaze)}
     tags = synthetic_mark(
         "dub", bundle=bundle.manifest.get("id", bundle.root.name), audio=Path(audio_path).name, **extra
     )
@@ -235,6 +231,11 @@ def eye_requests(gaze: str | Path, seq: TrackedSequence, frames: int) -> np.ndar
     if str(gaze) == "camera":
         return np.full((frames, 2), np.nan, np.float32)
     return gaze_track(gaze, frames, seq.fps)
+
+
+def gaze_mark(gaze: str | Path) -> dict[str, str]:
+    """The output's provenance tag of a gaze request: none for the footage's own gaze."""
+    return {} if str(gaze) == "footage" else {"gaze": Path(gaze).name}
 
 
 def check_gaze(seq: TrackedSequence) -> None:
@@ -303,7 +304,7 @@ def _resume_key(
         "transcript_sha256": None
         if transcript is None
         else hashlib.sha256(json.dumps(list(transcript)).encode()).hexdigest(),
-        "gaze": str(gaze) if str(gaze) in ("footage", "camera") else file_sha256(Path(gaze)),
+        "gaze": str(gaze) if gaze_file(gaze) is None else file_sha256(gaze_file(gaze)),
         "frames": frames,
         "part_frames": PART_FRAMES,
     }

@@ -140,10 +140,10 @@ def live(
     (RGB24, ``width × height × 3`` bytes per frame). ``status(text)`` is called about once a second.
     ``gaze``: where the eyes look, as :func:`nvp.app.dub.dub` takes it (a gaze file's times count from the
     stream's start)."""
-    from nvp.app.dub import check_gaze, dubbed_vertices, load_person
+    from nvp.app.dub import check_gaze, dubbed_vertices, gaze_mark, load_person
     from nvp.artifact import check_output_file
     from nvp.bundle import PersonBundle
-    from nvp.gaze import gaze_at, read_gaze_file
+    from nvp.gaze import gaze_at, gaze_file, read_gaze_file
     from nvp.media import VideoWriter
     from nvp.provenance import synthetic_mark
     from nvp.stream import LOOKAHEAD_S, ExpressionStream
@@ -168,13 +168,13 @@ def live(
     seq, model = person.tracked, person.model
     if str(gaze) != "footage":
         check_gaze(seq)
-    gaze_rows = None if str(gaze) in ("footage", "camera") else read_gaze_file(Path(gaze))
+    gaze_rows = None if gaze_file(gaze) is None else read_gaze_file(gaze_file(gaze))
     lookahead = LOOKAHEAD_S if lookahead_s is None else lookahead_s
     stream = ExpressionStream(person.style, person.net, seq.fps, lookahead)
     weights = model.mouth_weights()
     footage = _target_frames(bundle.path("target"), seq.num_frames, seq.fps)
-    asked = {} if str(gaze) == "footage" else {"gaze": Path(gaze).name}
-    tags = synthetic_mark("live", bundle=bundle.manifest.get("id", bundle.root.name), **person.mark, **asked)
+    mark = {**person.mark, **gaze_mark(gaze)}
+    tags = synthetic_mark("live", bundle=bundle.manifest.get("id", bundle.root.name), **mark)
     totals: list[int] = []  # samples received in all after each block
     times: list[float] = []  # when each block arrived
     latency: list[float] = []

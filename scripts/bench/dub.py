@@ -88,6 +88,16 @@ def child(audio: str, person: str, out: str, profile: bool = False, glibc_defaul
     print(json.dumps(m))
 
 
+def demo_person(folder: Path, size: int) -> Path:
+    """A person bundle in ``folder`` from nvp's demo target (a ``size``² talking astronaut, 4 s), its renderer
+    trained for 2 steps: enough for speed and memory, which do not depend on training."""
+    from nvp.app.demo_clip import make_demo_clip
+    from nvp.app.fit import FitConfig, fit
+
+    clip = make_demo_clip(folder / "target.mp4", seconds=4.0, size=size)
+    return fit(clip.path, folder / "person", FitConfig(steps=2), progress=False).root
+
+
 def cpu_name() -> str:
     """The CPU's model name (``/proc/cpuinfo``) and whether it computes bfloat16 natively (the networks'
     precision follows it, :func:`renderer.networks.fast_bf16`); the machine type elsewhere."""
@@ -116,17 +126,12 @@ def main(argv: list[str] | None = None) -> int:
     import numpy as np
     import soundfile as sf
 
-    from nvp.app.demo_clip import make_demo_clip
     from nvp.app.demo_voice import AUDIO_RATE, speech_script, synth_voice
-    from nvp.app.fit import FitConfig, fit
 
     print(f"# bench_dub ({cpu_name()}, {os.cpu_count()} CPUs, load {os.getloadavg()[0]:.2f})")
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        person = args.person
-        if person is None:
-            clip = make_demo_clip(tmp / "target.mp4", seconds=4.0, size=args.size)
-            person = fit(clip.path, tmp / "person", FitConfig(steps=2), progress=False).root
+        person = args.person or demo_person(tmp, args.size)
         rng = np.random.default_rng(3)
         wav = tmp / "speech.wav"
         sf.write(wav, synth_voice(speech_script(args.seconds, rng), args.seconds, rng), AUDIO_RATE)

@@ -21,7 +21,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from scripts.bench.dub import cpu_name
+from scripts.bench.dub import cpu_name, demo_person
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -35,18 +35,13 @@ def main(argv: list[str] | None = None) -> int:
     import numpy as np
     import soundfile as sf
 
-    from nvp.app.demo_clip import make_demo_clip
     from nvp.app.demo_voice import speech_script, synth_voice
-    from nvp.app.fit import FitConfig, fit
 
     print(f"# bench_dub_memory ({cpu_name()}, {os.cpu_count()} CPUs, load {os.getloadavg()[0]:.2f})")
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        person = args.person
-        if person is None:
-            clip = make_demo_clip(tmp / "target.mp4", seconds=4.0, size=args.size)
-            person = fit(clip.path, tmp / "person", FitConfig(steps=2), progress=False).root
+        person = args.person or demo_person(tmp, args.size)
         rng = np.random.default_rng(3)
         block = synth_voice(speech_script(20.0, rng), 20.0, rng, args.rate).astype(np.float32)
         for minutes in args.minutes:

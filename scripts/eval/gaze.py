@@ -44,7 +44,7 @@ from nvp.gaze import (
     iris_circles,
     towards_camera,
 )
-from nvp.image_metrics import high_frequency, high_frequency_energy, seam_gradient_ratio
+from nvp.image_metrics import high_frequency, high_frequency_energy, mouth_box, seam_gradient_ratio
 from nvp.media import iter_frames
 from renderer.eyes import OPEN_FULL, eye_moves, move_eyes, openness
 from scripts.common import SPLIT, VIDEOS, data_missing
@@ -65,10 +65,8 @@ def default_videos() -> list[str]:
 
 
 def eye_box(outline: np.ndarray, shape: tuple[int, int]) -> tuple[int, int, int, int]:
-    lo, hi = outline.min(0), outline.max(0)
-    pad = 0.5 * (hi[0] - lo[0])
-    y0, x0 = int(max(lo[1] - pad, 0)), int(max(lo[0] - pad, 0))
-    return y0, int(min(hi[1] + pad, shape[0])), x0, int(min(hi[0] + pad, shape[1]))
+    """The eye box: the opening's bounding box grown by half its width (the mouth box's rule)."""
+    return mouth_box(outline, shape, grow=0.5)
 
 
 def evaluate(video: Path, cache: Path, out: Path, crops: bool = True) -> dict:

@@ -58,11 +58,12 @@ def _audio_files(args: argparse.Namespace) -> list[Path]:
 
 def _on_cluster(args: argparse.Namespace, audios: list[Path], address: str) -> int:
     from nvp.app.cluster import absolute, run_inputs
+    from nvp.gaze import gaze_file
 
     def argv_of(audio: Path) -> list[str]:
         argv = ["dub", absolute(audio), "--person", absolute(args.person), "--device", args.device]
         argv += ["-o", absolute(Path(args.output) / f"{audio.stem}.mp4")]
-        argv += ["--gaze", args.gaze if args.gaze in ("footage", "camera") else absolute(Path(args.gaze))]
+        argv += ["--gaze", args.gaze if gaze_file(args.gaze) is None else absolute(gaze_file(args.gaze))]
         return argv + (["--style", absolute(args.style)] if args.style else [])
 
     code, _ = run_inputs("dub", audios, argv_of, address, args.output, "dubbed", progress=not args.quiet)
