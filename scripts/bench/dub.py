@@ -98,6 +98,13 @@ def demo_person(folder: Path, size: int) -> Path:
     return fit(clip.path, folder / "person", FitConfig(steps=2), progress=False).root
 
 
+def run_child(audio: Path, person: Path, out: Path, *extra: str, env: dict | None = None) -> dict:
+    """:func:`child`'s dub in a fresh process (its peak RSS its own): what it measured."""
+    cmd = [sys.executable, "-m", "scripts.bench.dub", "--child", str(audio), str(person), str(out), *extra]
+    proc = subprocess.run(cmd, capture_output=True, text=True, check=True, env=env)
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
 def cpu_name() -> str:
     """The CPU's model name (``/proc/cpuinfo``) and whether it computes bfloat16 natively (the networks'
     precision follows it, :func:`renderer.networks.fast_bf16`); the machine type elsewhere."""
@@ -137,19 +144,8 @@ def main(argv: list[str] | None = None) -> int:
         sf.write(wav, synth_voice(speech_script(args.seconds, rng), args.seconds, rng), AUDIO_RATE)
 
         def run(*extra: str, env: dict | None = None) -> dict:
-            cmd = [
-                sys.executable,
-                "-m",
-                "scripts.bench.dub",
-                "--child",
-                str(wav),
-                str(person),
-                str(tmp / "dub.mp4"),
-                *extra,
-            ]
-            cmd += ["--glibc-defaults"] if args.glibc_defaults else []
-            proc = subprocess.run(cmd, capture_output=True, text=True, check=True, env=env)
-            return json.loads(proc.stdout.strip().splitlines()[-1])
+            extra += ("--glibc-defaults",) if args.glibc_defaults else ()
+            return run_child(wav, person, tmp / "dub.mp4", *extra, env=env)
 
         m = run()
         stages = run("--profile", env={**os.environ, "NVP_THREADS": "1", "OMP_NUM_THREADS": "1"})

@@ -14,14 +14,12 @@ per length the frames, the wall time and the peak RSS, then the growth against t
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
-from scripts.bench.dub import cpu_name, demo_person
+from scripts.bench.dub import cpu_name, demo_person, run_child
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -48,17 +46,7 @@ def main(argv: list[str] | None = None) -> int:
             wav = tmp / "speech.wav"
             samples = np.tile(block, int(np.ceil(minutes * 60 / 20.0)))[: int(minutes * 60 * args.rate)]
             sf.write(wav, np.repeat(samples[:, None], args.channels, 1), args.rate, subtype="PCM_16")
-            cmd = [
-                sys.executable,
-                "-m",
-                "scripts.bench.dub",
-                "--child",
-                str(wav),
-                str(person),
-                str(tmp / "d.mp4"),
-            ]
-            proc = subprocess.run(cmd, capture_output=True, text=True, check=True)
-            m = json.loads(proc.stdout.strip().splitlines()[-1])
+            m = run_child(wav, person, tmp / "d.mp4")
             rows.append((minutes, m))
             print(
                 f"{minutes:g} min of {args.rate} Hz x{args.channels} audio: {m['frames']} frames in "
