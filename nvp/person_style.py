@@ -124,8 +124,8 @@ class VideoSample:
         name: file name of the video.
         windows: ``(T, W, D)`` float32 speech-feature windows, one per video frame.
         tracked: the video's ``TrackedSequence`` (``T`` frames; expressions are the regression target).
-        noisy: more ``(T, W, D)`` windows of the same frames, from the audio with noise mixed in (training
-            augmentation; may be empty).
+        augmented: more ``(T, W, D)`` windows of the same frames, from copies of the audio (training
+            augmentation, :mod:`nvp.augment`; may be empty).
         opening_windows: ``(T, W, D)`` windows of the opening model's features (``"whisper"``,
             :mod:`nvp.opening`) of the same frames, or None.
     """
@@ -133,7 +133,7 @@ class VideoSample:
     name: str
     windows: np.ndarray
     tracked: TrackedSequence
-    noisy: tuple[np.ndarray, ...] = ()
+    augmented: tuple[np.ndarray, ...] = ()
     opening_windows: np.ndarray | None = None
 
     @property

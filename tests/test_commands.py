@@ -63,13 +63,13 @@ def test_pretrain_renderer_command_and_a_training_that_starts_from_it(corpus, de
 
 def test_train_audio2exp_command(corpus, tmp_path):
     out = tmp_path / "a2e"
-    args = ("--val", "b.mp4", "--steps", 4, "--val-every", 2, "--noise-snr", 10)
+    args = ("--val", "b.mp4", "--steps", 4, "--val-every", 2, "--augment", "noise10")
     proc = nvp("train-audio2exp", corpus, "-o", out, *args)
     assert proc.returncode == 0, proc.stderr
     best = json.loads((out / "best.json").read_text())
     assert best["split"] == {"train": ["a.mp4"], "validation": ["b.mp4"], "excluded": []}
-    assert best["train_config"]["noise_snrs"] == [10.0] and best["net"]["closure_head"]
-    noisy = [p.name for p in (out / "cache" / "features").glob("*_snr10.json")]
+    assert best["train_config"]["augments"] == ["noise10"] and best["net"]["closure_head"]
+    noisy = [p.name for p in (out / "cache" / "features").glob("*_noise10.json")]
     assert len(noisy) == 1 and noisy[0].startswith("a-")  # training videos only
     # every validation video unusable: refused before training, nothing written
     proc = nvp("train-audio2exp", corpus, "-o", tmp_path / "x", "--val", "b.mp4", "--exclude", "b.mp4")
@@ -121,13 +121,13 @@ def test_eval_happy_path(tmp_path):
     assert (out / "person" / "bundle.json").stat().st_mtime == before  # the finished fit was reused
 
 
-def test_training_with_noisy_copies_reads_them_and_stays_reproducible(face_model, tmp_path):
+def test_training_with_audio_copies_reads_them_and_stays_reproducible(face_model, tmp_path):
     clean = [fake_sample(face_model, f"v{i}", i) for i in range(2)]
     val_set = [fake_sample(face_model, "val", 9)]
     cfg = Audio2ExpTrainConfig(steps=10, batch=8, lr=3e-3, val_every=10, net=CFG)
-    noisy = [dataclasses.replace(s, noisy=(s.windows + 5.0,)) for s in clean]
+    noisy = [dataclasses.replace(s, augmented=(s.windows + 5.0,)) for s in clean]
     a = train(clean, val_set, face_model, cfg, tmp_path / "a", progress=False)
     b = train(noisy, val_set, face_model, cfg, tmp_path / "b", progress=False)
     c = train(noisy, val_set, face_model, cfg, tmp_path / "c", progress=False)
-    assert b["log"][-1]["train_loss"] != a["log"][-1]["train_loss"]  # the noisy copies were read
+    assert b["log"][-1]["train_loss"] != a["log"][-1]["train_loss"]  # the copies were read
     assert b["log"] == [dict(r, seconds=br["seconds"]) for r, br in zip(c["log"], b["log"], strict=True)]

@@ -51,37 +51,40 @@ def tracked_cached(video: Path, cache: Path, progress: bool = True) -> TrackedSe
 
 
 def features_cached(
-    video: Path, cache: Path, kind: str, fps: float, num_frames: int, snr_db: float | None = None
+    video: Path, cache: Path, kind: str, fps: float, num_frames: int, augment: str | None = None
 ) -> np.ndarray:
-    """Feature windows ``(T, W, D)`` of the video's audio track — with white noise mixed in at ``snr_db``
-    when given (:func:`nvp.vad.with_white_noise`, seeded by the file's content) — kept in
+    """Feature windows ``(T, W, D)`` of the video's audio track — or of its copy under ``augment`` (a name
+    :func:`nvp.augment.parse_augmentation` reads, seeded by the file's content; a faster or slower copy is
+    read at that many times the frame rate, so frame ``t`` keeps its own sound) — kept in
     ``cache/features`` (an artifact: written atomically; a damaged entry is recomputed). ``"phonemes"``
     and ``"phonetic"`` of the clean audio come from one recogniser pass, so computing either caches both."""
     from nvp.audio_features import SAMPLE_RATE, extract_features, recogniser_features, speaker_normalized
+    from nvp.augment import parse_augmentation
     from nvp.media import read_audio
-    from nvp.vad import with_white_noise
     from nvp.windows import frame_windows
 
     key = cache_key(video)
-    noise = "" if snr_db is None else f"_snr{snr_db:g}"
+    copy = parse_augmentation(augment) if augment else None
+    suffix = f"_{copy.name}" if copy else ""
 
     def path(k: str) -> Path:
-        return cache / "features" / f"{key}_{k}_{fps:.3f}_{num_frames}_sn{noise}.json"
+        return cache / "features" / f"{key}_{k}_{fps:.3f}_{num_frames}_sn{suffix}.json"
 
     try:
         return load_artifact(path(kind), "feature_windows", 1).arrays["windows"]
     except (FormatError, KeyError):
         pass
     audio = read_audio(video, SAMPLE_RATE)
-    if snr_db is not None:
-        audio = with_white_noise(audio, SAMPLE_RATE, snr_db, int(key[-16:], 16) % 2**32)
-    if kind in ("phonemes", "phonetic") and snr_db is None:  # noisy copies are only trained on
+    if copy is not None:
+        audio = copy.apply(audio, SAMPLE_RATE, int(key[-16:], 16) % 2**32)
+    if kind in ("phonemes", "phonetic") and copy is None:  # copies are only trained on
         made = {f.kind: f for f in recogniser_features(audio, SAMPLE_RATE)}
     else:
         made = {kind: extract_features(audio, SAMPLE_RATE, kind=kind)}
+    rate = fps * (copy.time_scale if copy else 1.0)
     for k, feats in made.items():
-        windows = frame_windows(speaker_normalized(feats), fps, num_frames=num_frames).astype(np.float32)
-        fields = {"video": video.name, "kind": k, "snr_db": snr_db}
+        windows = frame_windows(speaker_normalized(feats), rate, num_frames=num_frames).astype(np.float32)
+        fields = {"video": video.name, "kind": k, "augment": copy.name if copy else None}
         save_artifact(path(k), "feature_windows", 1, {"windows": windows}, fields)
         made[k] = windows
     return made[kind]
@@ -92,14 +95,14 @@ def load_sample(
     cache: Path,
     kind: str = "phonemes",
     progress: bool = True,
-    noise_snrs: tuple[float, ...] = (),
+    augments: tuple[str, ...] = (),
 ) -> VideoSample:
-    """The video's tracking and feature windows (cached), plus windows of its audio with white noise at
-    each of ``noise_snrs`` dB as ``VideoSample.noisy`` (training augmentation)."""
+    """The video's tracking and feature windows (cached), plus windows of each of ``augments``' copies of
+    its audio as ``VideoSample.augmented`` (training augmentation, :mod:`nvp.augment`)."""
     seq = tracked_cached(video, cache, progress)
     windows = features_cached(video, cache, kind, seq.fps, seq.num_frames)
-    noisy = tuple(features_cached(video, cache, kind, seq.fps, seq.num_frames, snr) for snr in noise_snrs)
-    return VideoSample(name=video.name, windows=windows, tracked=seq, noisy=noisy)
+    copies = tuple(features_cached(video, cache, kind, seq.fps, seq.num_frames, a) for a in augments)
+    return VideoSample(name=video.name, windows=windows, tracked=seq, augmented=copies)
 
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".mkv", ".avi", ".webm", ".m4v")
@@ -112,13 +115,13 @@ def corpus_split(
     cache: Path,
     kind: str,
     progress: bool = True,
-    noise_snrs: tuple[float, ...] = (),
+    augments: tuple[str, ...] = (),
 ) -> tuple[list[VideoSample], list[VideoSample], dict]:
     """The videos of ``folder`` as training and validation samples (tracked and featurised, cached), and
     the split as a dict for the model's manifest. ``val``: file names of validation videos (default: five
     spread over the sorted list); ``exclude``: file names left out; a video that cannot be used (no face,
-    no audio) is skipped with a warning. Training videos also get windows of their audio with white noise
-    at each of ``noise_snrs`` dB (:func:`load_sample`)."""
+    no audio) is skipped with a warning. Training videos also get windows of their audio's copies under
+    ``augments`` (:func:`load_sample`)."""
     videos = sorted(p for p in Path(folder).iterdir() if p.suffix.lower() in VIDEO_SUFFIXES)
     if not videos:
         raise NvpError(f"no videos ({', '.join(VIDEO_SUFFIXES)}) in {folder}")
@@ -134,8 +137,8 @@ def corpus_split(
         if v.name in excluded:
             continue
         try:
-            snrs = () if v.name in val_names else tuple(noise_snrs)
-            samples.append(load_sample(v, cache, kind, progress=progress, noise_snrs=snrs))
+            copies = () if v.name in val_names else tuple(augments)
+            samples.append(load_sample(v, cache, kind, progress=progress, augments=copies))
         except NvpError as e:
             log.warning("skipping %s: %s", v.name, e)
     train_set = [s for s in samples if s.name not in val_names]

@@ -70,10 +70,10 @@ class Audio2ExpTrainConfig:
     """Steps between validations (and checkpoints)."""
     seed: int = 0
     """Random seed (weights, batches)."""
-    noise_snrs: tuple[float, ...] = ()
-    """SNRs in dB of the noisy copies of the training videos' audio (``VideoSample.noisy``, made by the
-    corpus loader); each batch item reads the clean or one of the noisy feature windows with equal
-    probability, so speech in noise is mapped to the same mouth."""
+    augments: tuple[str, ...] = ()
+    """Copies of the training videos' audio (:mod:`nvp.augment` names, ``VideoSample.augmented``, made by the
+    corpus loader); each batch item reads the clean or one of the copies' feature windows with equal
+    probability, so each copy's speech is mapped to the same mouth."""
     closure_weight: float = 1.0
     """Weight of the closure head's loss (binary cross-entropy: is the tracked inner-lip gap at or below
     the video's closed level, ``nvp.metrics.closed_level``); 0 trains no closure head."""
@@ -279,7 +279,7 @@ def train(
         ]
     )
     metric = VertexMetric(model.exp_basis, model.vertex_regions["mouth"], cfg.mouth_weight)
-    windows = [[torch.from_numpy(w) for w in (s.windows, *s.noisy)] for s in train_set]
+    windows = [[torch.from_numpy(w) for w in (s.windows, *s.augmented)] for s in train_set]
     targets = [torch.from_numpy(s.expression) for s in train_set]
     closed = [torch.from_numpy(closed_frames(s, model)) for s in train_set]
     pos_weight = _closure_pos_weight(closed, cfg.closure_weight)
@@ -333,7 +333,7 @@ def train(
         variant = rng.integers(0, 1 << 30, cfg.batch)[share]
         wins, tgts, vids, shut = [], [], [], []
         for (v, t), k in zip(pick, variant, strict=True):
-            source = windows[v][k % len(windows[v])]  # clean or one of the noisy copies
+            source = windows[v][k % len(windows[v])]  # clean or one of the copies
             idx = _filter_indices(np.array([t]), len(source), f)[0]
             wins.append(source[idx])
             tgts.append(targets[v][t - 1 : t + 2])
@@ -424,7 +424,7 @@ def train_on_corpus(
 ) -> dict | None:
     """``nvp train-audio2exp``: train on the videos of the folder ``corpus`` (``val``: validation file names,
     default 5 spread over the list; ``exclude``: left out) into ``output``; tracking and features are
-    cached in ``cache`` (default ``output/cache``), the noisy copies of ``cfg.noise_snrs`` too. Under
+    cached in ``cache`` (default ``output/cache``), the copies of ``cfg.augments`` too. Under
     torchrun every process calls it and the main process tracks the corpus into the cache first. Returns
     :func:`train`'s result in the main process, None in the others."""
     from nvp.app.corpus import corpus_split
@@ -436,7 +436,7 @@ def train_on_corpus(
     if not group.main:
         group.barrier()  # the main process tracks the corpus into the cache first
     train_set, val_set, split = corpus_split(
-        Path(corpus), val, exclude, cache, cfg.kind, progress and group.main, cfg.noise_snrs
+        Path(corpus), val, exclude, cache, cfg.kind, progress and group.main, cfg.augments
     )
     if group.main:
         group.barrier()

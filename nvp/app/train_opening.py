@@ -46,7 +46,8 @@ def train_opening(
     kind: str = FEATURE_KIND,
 ) -> tuple[OpeningModel, dict]:
     """Fit one model per ridge on ``train_set`` (windows of ``kind`` features, by default
-    :data:`nvp.opening.FEATURE_KIND`), keep the one whose mean validation correlation is highest (the largest
+    :data:`nvp.opening.FEATURE_KIND`; each sample's augmented copies count as more frames with the same
+    targets), keep the one whose mean validation correlation is highest (the largest
     ridge on ties; the largest ridge without validation videos), write ``out`` (.npz + .json) and return it
     with its summary."""
     if not train_set:
@@ -54,7 +55,11 @@ def train_opening(
     widths = {s.windows.shape[2] for s in train_set + val_set}
     if len(widths) != 1:
         raise NvpError(f"training and validation windows differ in feature width: {sorted(widths)}")
-    sums = normal_equations((s.windows for s in train_set), [opening_targets(s, model) for s in train_set])
+    targets = [opening_targets(s, model) for s in train_set]
+    sums = normal_equations(
+        (w for s in train_set for w in (s.windows, *s.augmented)),
+        (y for s, y in zip(train_set, targets, strict=True) for _ in range(1 + len(s.augmented))),
+    )
     fits = {}
     for ridge in ridges:
         m = sums.solve(ridge)
@@ -83,23 +88,25 @@ def train_opening_on_corpus(
     cache: Path | None = None,
     kind: str | None = None,
     progress: bool = True,
+    augments: tuple[str, ...] = (),
 ) -> tuple[dict, int]:
     """``nvp train-opening``: the opening model of feature ``kind`` (default: the shipped model's) fitted on
     the videos of the folder ``corpus`` (``val`` / ``exclude`` as :func:`nvp.app.corpus.corpus_split`
-    takes them; tracking and features cached in ``cache``, default ``cache`` beside ``output``) and saved
-    at ``output``. Returns :func:`train_opening`'s summary and the number of validation videos."""
+    takes them; tracking and features cached in ``cache``, default ``cache`` beside ``output``), also on
+    the training videos' copies under ``augments`` (:mod:`nvp.augment`), and saved at ``output``. Returns
+    :func:`train_opening`'s summary and the number of validation videos."""
     from nvp.app.corpus import corpus_split
     from nvp.face_model import default_face_model
 
     kind = kind or FEATURE_KIND
     cache = Path(cache) if cache else Path(output).parent / "cache"
-    train_set, val_set, split = corpus_split(Path(corpus), val, exclude, cache, kind, progress)
+    train_set, val_set, split = corpus_split(Path(corpus), val, exclude, cache, kind, progress, augments)
     _, summary = train_opening(
         train_set,
         val_set,
         default_face_model(),
         Path(output),
-        provenance={"split": split, "corpus": str(corpus)},
+        provenance={"split": split, "corpus": str(corpus), "augments": list(augments)},
         kind=kind,
     )
     return summary, len(val_set)

@@ -18,7 +18,9 @@ written to ``DIR/opening_<kind>.json``. Reported per kind:
   a rough signal, marked as such wherever it is quoted.
 
 A kind ``A+B`` joins the windows of two kinds channel by channel (measurement only; such a model cannot be
-used by ``nvp dub``). Tracking and features come from ``--cache`` (``nvp.app.corpus``).
+used by ``nvp dub``). ``KIND@COPY,COPY`` also trains on those copies of the training clips' audio
+(``nvp train-opening --augment``, :mod:`nvp.augment`), e.g. ``whisper@speed0.9,speed1.1,room0.5``; validation
+clips are never copied. Tracking and features come from ``--cache`` (``nvp.app.corpus``).
 
 ``--test-models M1.json M2.json`` (after the choice; nothing is trained or chosen): each opening model's
 whole-clip correlation (the model alone, as on validation) on every test clip of ``scripts/data_split.json``,
@@ -67,9 +69,9 @@ CLIP_LANGUAGE = {"wth2025__Maria-Spanish.mp4": "es"}
 """Languages of corpus clips outside ``scripts/data_split.json`` that are not English (video_wide)."""
 
 
-def load(corpus: Path, val: list[str], cache: Path, kind: str):
+def load(corpus: Path, val: list[str], cache: Path, kind: str, augments: tuple[str, ...] = ()):
     """Training and validation samples of a kind, or of ``A+B`` (windows joined channel by channel)."""
-    parts = [corpus_split(corpus, val, None, cache, k, progress=False) for k in kind.split("+")]
+    parts = [corpus_split(corpus, val, None, cache, k, False, augments) for k in kind.split("+")]
     if len(parts) == 1:
         return parts[0]
     (train, valid, split), *rest = parts
@@ -82,6 +84,14 @@ def load(corpus: Path, val: list[str], cache: Path, kind: str):
         ]
 
     return join(train, [r[0] for r in rest]), join(valid, [r[1] for r in rest]), split
+
+
+def sums_of(samples, targets: dict[str, np.ndarray]) -> NormalEquations:
+    """The normal equations of ``samples`` and their augmented copies (as ``train_opening`` makes them)."""
+    return normal_equations(
+        (w for s in samples for w in (s.windows, *s.augmented)),
+        (targets[s.name] for s in samples for _ in range(1 + len(s.augmented))),
+    )
 
 
 def minus(a: NormalEquations, b: NormalEquations) -> NormalEquations:
@@ -154,25 +164,33 @@ def main(argv: list[str] | None = None) -> int:
     results = {}
     for kind in args.kinds:
         t0 = time.perf_counter()
-        train, valid, used = load(args.corpus, split["validation"], args.cache, kind)
-        path = args.out / f"opening_{kind.replace('+', '_and_')}"
+        features, _, copies = kind.partition("@")
+        augments = tuple(c for c in copies.split(",") if c)
+        if augments and "+" in features:
+            ap.error(f"{kind}: copies of joined kinds are not supported")
+        train, valid, used = load(args.corpus, split["validation"], args.cache, features, augments)
+        path = args.out / f"opening_{kind.replace('+', '_and_').replace('@', '_with_').replace(',', '_')}"
         model, summary = train_opening(
-            train, valid, face, path, tuple(args.ridges), provenance={"split": used}, kind=kind
+            train,
+            valid,
+            face,
+            path,
+            tuple(args.ridges),
+            provenance={"split": used, "augments": list(augments)},
+            kind=features,
         )
         per_lang: dict[str, list[float]] = {}
         for name, c in summary["validation_per_video"].items():
             per_lang.setdefault(lang.get(name, "en"), []).append(c)
         # each non-English training person left out in turn, refitted at the ridge validation chose
         targets = {s.name: opening_targets(s, face) for s in train}
-        sums = normal_equations((s.windows for s in train), (targets[s.name] for s in train))
+        sums = sums_of(train, targets)
         left_out = {}
         for who, (_, out_clips, predicted) in LEAVE_OUT.items():
             theirs = [s for s in train if s.name in out_clips]
             if not theirs:
                 continue
-            without = minus(
-                sums, normal_equations((s.windows for s in theirs), (targets[s.name] for s in theirs))
-            )
+            without = minus(sums, sums_of(theirs, targets))
             m = without.solve(summary["ridge"])
             left_out[who] = correlations(m, [s for s in theirs if s.name in predicted], face)
         results[kind] = {

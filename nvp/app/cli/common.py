@@ -88,11 +88,28 @@ def add_features_arg(p: argparse.ArgumentParser) -> None:
 
 
 def add_corpus_split_args(p: argparse.ArgumentParser) -> None:
-    """Validation and left-out videos of a training corpus (train-audio2exp, train-opening)."""
+    """Validation and left-out videos of a training corpus, and copies of the training videos' audio
+    (train-audio2exp, train-opening)."""
     p.add_argument(
         "--val", nargs="*", help="file names of validation videos (default: 5 spread over the list)"
     )
     p.add_argument("--exclude", nargs="*", help="file names to leave out entirely")
+    p.add_argument(
+        "--augment",
+        nargs="*",
+        default=[],
+        metavar="COPY",
+        help="also train on these copies of the training videos' audio: speedF (played F times as fast, "
+        "e.g. speed0.9), roomT (a room of reverberation time T s, e.g. room0.5), noiseS (white noise at S "
+        "dB, e.g. noise10)",
+    )
+
+
+def augmentations(args: argparse.Namespace) -> tuple[str, ...]:
+    """``--augment``'s names, each checked (one clear error for a bad one, before any work)."""
+    from nvp.augment import parse_augmentation
+
+    return tuple(parse_augmentation(a).name for a in args.augment)
 
 
 def device(name: str) -> str:

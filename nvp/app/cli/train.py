@@ -12,6 +12,7 @@ from nvp.app.cli.common import (
     add_features_arg,
     add_preset_arg,
     add_renderer_training_args,
+    augmentations,
     device,
 )
 
@@ -33,13 +34,6 @@ def add_train_audio2exp(sub) -> None:
         default=1.0,
         help="weight of the closure head's loss (0: no closure head)",
     )
-    p.add_argument(
-        "--noise-snr",
-        type=float,
-        nargs="*",
-        metavar="DB",
-        help="also train on the audio with white noise at these SNRs, e.g. 20 10 0 (augmentation)",
-    )
     p.add_argument("--cache", type=Path, help="tracking/feature cache (default: OUTPUT/cache)")
     p.set_defaults(func=run_train_audio2exp)
 
@@ -53,7 +47,7 @@ def run_train_audio2exp(args: argparse.Namespace) -> int:
         seed=args.seed,
         val_every=args.val_every,
         closure_weight=args.closure_weight,
-        noise_snrs=tuple(args.noise_snr or ()),
+        augments=augmentations(args),
     )
     result = train_on_corpus(
         args.corpus, args.output, cfg, args.val, args.exclude, args.cache, not args.quiet
@@ -92,7 +86,14 @@ def run_train_opening(args: argparse.Namespace) -> int:
     from nvp.app.train_opening import train_opening_on_corpus
 
     summary, validation = train_opening_on_corpus(
-        args.corpus, args.output, args.val, args.exclude, args.cache, args.features, not args.quiet
+        args.corpus,
+        args.output,
+        args.val,
+        args.exclude,
+        args.cache,
+        args.features,
+        not args.quiet,
+        augmentations(args),
     )
     print(
         f"ridge {summary['ridge']:g}: validation correlation {summary['validation_corr']:.3f} on "
