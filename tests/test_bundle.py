@@ -366,29 +366,25 @@ def test_dub_refuses_audio_with_samples_that_are_not_numbers_before_any_work(
     assert sorted(p.name for p in tmp_path.iterdir()) == ["s.wav"]  # no output, no parts folder
 
 
-def test_dub_of_audio_at_a_rate_aac_cannot_store_is_resampled_before_rendering(fitted, tmp_path, monkeypatch):
-    import renderer.render
+def test_dub_of_audio_at_a_rate_aac_cannot_store_streams_it_resampled_into_the_join(
+    fitted, tmp_path, monkeypatch
+):
     from nvp.app.dub import dub
     from nvp.media import VideoWriter, probe_video, read_audio
 
     wav = tmp_path / "s.wav"
     sf.write(wav, speech(1.0, 22000), 22000)  # voca's test sentence is at 22,000 Hz
-    rates = []
-    real_writer, real_renderer = VideoWriter.__init__, renderer.render.FrameRenderer
+    given = []
+    real_writer = VideoWriter.__init__
 
     def writer(self, *a, **k):
-        if k.get("audio") is not None:
-            rates.append(k["audio_rate"])
+        if k.get("audio_file") is not None or k.get("audio") is not None:
+            given.append((k.get("audio_file"), k.get("audio")))
         real_writer(self, *a, **k)
 
-    def renderer_(*a, **k):
-        rates.append("render")
-        return real_renderer(*a, **k)
-
     monkeypatch.setattr(VideoWriter, "__init__", writer)
-    monkeypatch.setattr(renderer.render, "FrameRenderer", renderer_)
     r = dub(wav, fitted, tmp_path / "o.mp4", progress=False)
-    assert rates == ["render", 22050]  # the join was given audio AAC stores
+    assert given == [(wav, None)]  # the join reads the track from the file, not from an array held whole
     assert probe_video(r.output).audio_sample_rate == 22050
     assert abs(len(read_audio(r.output, 22050)) - 22050) < 22050 / 25 + 1024
     assert sorted(p.name for p in tmp_path.iterdir()) == ["o.mp4", "s.wav"]  # no parts left

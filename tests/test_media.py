@@ -324,6 +324,110 @@ def test_writer_pads_short_audio_and_accepts_stereo(tmp_path: Path) -> None:
     assert np.abs(audio[:3000]).max() > 0.3 and np.abs(audio[4000:]).max() < 0.05
 
 
+def noise_wav(path: Path, rate: int, channels: int, seconds: float, seed: int = 0) -> Path:
+    """16-bit wav of quiet noise, each channel its own."""
+    data = 0.3 * np.random.default_rng(seed).standard_normal((round(rate * seconds), channels))
+    sf.write(path, data.astype(np.float32), rate, subtype="PCM_16")
+    return path
+
+
+def blocks_of(blocks: media.AudioBlocks) -> tuple[np.ndarray, int]:
+    """All of an AudioBlocks' samples, and how many blocks they came in."""
+    parts = list(blocks)
+    return np.concatenate(parts), len(parts)
+
+
+@pytest.mark.parametrize(
+    ("rate", "channels"), [(48000, 2), (44100, 2), (22050, 1), (22000, 1), (8000, 1), (16000, 10)]
+)
+def test_audio_blocks_are_read_audio_in_pieces(tmp_path: Path, rate: int, channels: int) -> None:
+    wav = noise_wav(tmp_path / "a.wav", rate, channels, 1.3)
+    whole = read_audio(wav, None, mono=False)
+    blocks = media.AudioBlocks(wav, None, mono=False)
+    streamed, count = blocks_of(blocks)
+    assert count > 1 and streamed.shape == whole.shape and np.array_equal(streamed, whole)
+    assert (blocks.rate, blocks.source_rate, blocks.source_samples) == (rate, rate, len(whole))
+    assert blocks.channels == channels
+    mono = media.AudioBlocks(wav, 16000)
+    assert np.array_equal(blocks_of(mono)[0], read_audio(wav, 16000))
+    assert mono.source_samples == len(whole) and mono.channels == 1
+
+
+def test_audio_blocks_drop_the_aac_padding_as_read_audio_does(clip: Path) -> None:
+    blocks = media.AudioBlocks(clip, None)
+    streamed, _ = blocks_of(blocks)
+    assert len(streamed) == blocks.source_samples == 6400  # 0.4 s of AAC, decoded to 7 x 1024 samples
+    assert np.array_equal(streamed, read_audio(clip, None))
+    assert np.array_equal(blocks_of(media.AudioBlocks(clip, 8000))[0], read_audio(clip, 8000))
+
+
+def test_audio_blocks_refuse_samples_that_are_not_numbers(tmp_path: Path) -> None:
+    audio = tone(300, 1.0, 22050)
+    audio[11025] = np.nan
+    sf.write(tmp_path / "nan.wav", audio, 22050, subtype="FLOAT")
+    with pytest.raises(MediaError, match=r"nan.wav.*not numbers .*the first at 0.50 s"):
+        list(media.AudioBlocks(tmp_path / "nan.wav", 16000))
+    with pytest.raises(MediaError, match="no audio stream"):
+        media.AudioBlocks(video_without_audio(tmp_path / "silent.mp4"))
+
+
+def video_without_audio(path: Path) -> Path:
+    with VideoWriter(path, 25, 16, 16) as w:
+        w.write(pattern(0, 16, 16))
+    return path
+
+
+@pytest.mark.parametrize(
+    ("rate", "channels", "stored"),
+    [
+        (48000, 2, 48000),
+        (44100, 2, 44100),
+        (22050, 1, 22050),
+        (22000, 1, 22050),
+        (8000, 1, 8000),
+        (100000, 2, 96000),
+        (16000, 10, 16000),
+    ],
+)
+@pytest.mark.parametrize("frames", [12, 25, 40])  # a video shorter than the audio, as long, longer
+def test_a_streamed_audio_file_writes_the_track_the_array_writes(
+    tmp_path: Path, rate: int, channels: int, stored: int, frames: int
+) -> None:
+    wav = noise_wav(tmp_path / "a.wav", rate, channels, 1.0)
+    outs = {"array": tmp_path / "array.mp4", "file": tmp_path / "file.mp4"}
+    given = {"array": {"audio": read_audio(wav, None, mono=False), "audio_rate": rate}}
+    for how, out in outs.items():
+        with VideoWriter(out, 25, 16, 16, **given.get(how, {"audio_file": wav})) as w:
+            for i in range(frames):
+                w.write(pattern(i, 16, 16))
+    array, streamed = (read_audio(outs[how], None, mono=False) for how in ("array", "file"))
+    assert probe_video(outs["file"]).audio_sample_rate == stored
+    assert streamed.shape == array.shape and np.array_equal(streamed, array)  # the same AAC track
+    assert streamed.shape[1:] == (() if channels in (1, 10) else (channels,))
+    assert len(streamed) == frames * stored // 25  # trimmed or padded to the video
+    if frames == 40:  # 0.6 s of silence after the audio's second
+        assert (
+            np.abs(streamed[int(1.1 * stored) :]).max() < 1e-3 < np.abs(streamed[: int(0.9 * stored)]).max()
+        )
+
+
+def test_a_streamed_audio_file_that_fails_leaves_no_output(tmp_path: Path) -> None:
+    audio = tone(300, 2.0, 22050)
+    audio[33075] = np.inf  # at 1.5 s: the writer reaches it after 30 frames
+    sf.write(tmp_path / "inf.wav", audio, 22050, subtype="FLOAT")
+    out = tmp_path / "o.mp4"
+    with pytest.raises(MediaError, match="the first at 1.50 s"):
+        with VideoWriter(out, 25, 16, 16, audio_file=tmp_path / "inf.wav") as w:
+            for i in range(50):
+                w.write(pattern(i, 16, 16))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["inf.wav"]  # no output, no temporary file
+    with pytest.raises(MediaError, match="does not exist"):
+        VideoWriter(out, 25, 16, 16, audio_file=tmp_path / "missing.wav")
+    with pytest.raises(ValueError, match="not both"):
+        VideoWriter(out, 25, 16, 16, audio=audio, audio_file=tmp_path / "inf.wav")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["inf.wav"]
+
+
 # ----------------------------------------------------------------------------------------------- writer
 
 

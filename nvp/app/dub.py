@@ -152,7 +152,8 @@ def dub(
     eyes look, ``"footage"`` (where they look in the footage), ``"camera"`` (into the lens) or a gaze file
     (:mod:`nvp.gaze`, angles in the face's frame), the footage's eyes turned (:mod:`renderer.eyes`)."""
     from nvp.artifact import check_output_file
-    from nvp.media import audio_rate, frames_at, read_audio, storable_audio
+    from nvp.audio_features import SAMPLE_RATE
+    from nvp.media import frames_at
     from nvp.person import predict_expressions
     from nvp.provenance import synthetic_mark
     from nvp.schedule import target_frame_indices
@@ -166,20 +167,17 @@ def dub(
         check_output_file(output, inputs=(audio_path,)), (audio_path, bundle_dir, style, gaze_file(gaze))
     )
     bundle = PersonBundle.load(bundle_dir)
-    rate = audio_rate(audio_path)
-    original = read_audio(audio_path, None, mono=False)
-    original, rate = storable_audio(original, rate)  # before rendering: AAC's rates (22000 Hz → 22050)
-    mono = original if original.ndim == 1 else original.mean(1)
-    if len(mono) == 0 or not speech_activity(mono, rate):
+    mono, duration = speech_audio(audio_path, SAMPLE_RATE)
+    if len(mono) == 0 or not speech_activity(mono, SAMPLE_RATE):
         raise NvpError(f"{audio_path}: no speech found (silence, noise or music only, or too quiet)")
     person = load_person(bundle, style)
     net, seq, model = person.net, person.tracked, person.model
-    duration = len(mono) / rate
     n_out = num_video_frames(duration, seq.fps)
     looks = eye_requests(gaze, seq, n_out)
     expression = predict_expressions(
-        mono, rate, seq.fps, person.style, net, num_frames=n_out, transcript=transcript
+        mono, SAMPLE_RATE, seq.fps, person.style, net, num_frames=n_out, transcript=transcript
     )
+    del mono  # the features are made: 230 MB an hour of audio
     order = target_frame_indices(n_out, seq.num_frames)
     weights = model.mouth_weights()
     extra = {**(details or {}), **person.mark, **gaze_mark(gaze)}
@@ -214,9 +212,21 @@ def dub(
                 finish=None if looks is None else _eyes_turned(model, seq, first, looks),
             )
             parts.write(made_frames, decided, seq)
-    parts.join(out, seq, audio=original, audio_rate=rate, metadata=tags)
+    parts.join(out, seq, audio_file=audio_path, metadata=tags)  # streamed from the file, at AAC's rates
     seconds = time.perf_counter() - t_start
     return DubResult(out, n_out, seq.fps, duration, seconds, order, expression, n_out - first)
+
+
+def speech_audio(audio_path: str | Path, rate: int) -> tuple[np.ndarray, float]:
+    """What a dub hears of ``audio_path``: its mono mix at ``rate`` Hz, decoded block by block (the track
+    at its own rate and channels is never held whole; the join reads it again, :class:`DubParts`), and its
+    duration in seconds at its own rate (``len(read_audio(audio_path, None)) / audio_rate(audio_path)``,
+    which sets the dub's length)."""
+    from nvp.media import AudioBlocks
+
+    with AudioBlocks(audio_path, rate) as blocks:
+        mono = np.concatenate([np.zeros(0, np.float32), *blocks])
+    return mono, blocks.source_samples / blocks.source_rate
 
 
 def eye_requests(gaze: str | Path, seq: TrackedSequence, frames: int) -> np.ndarray | None:

@@ -1,8 +1,8 @@
 """Media I/O with PyAV (no system ffmpeg): probing, frame iteration, audio reading and MP4 writing.
 
 One module per job: :mod:`nvp.media.probe` (what a file holds), :mod:`nvp.media.frames` (decoding frames),
-:mod:`nvp.media.audio` (reading audio; what an mp4's AAC track stores), :mod:`nvp.media.writer` (writing
-mp4 files). Import from ``nvp.media``.
+:mod:`nvp.media.audio` (reading audio, whole or block by block; what an mp4's AAC track stores),
+:mod:`nvp.media.writer` (writing mp4 files). Import from ``nvp.media``.
 
 Conventions used throughout:
 
@@ -12,7 +12,15 @@ Conventions used throughout:
 * Frame rates may be fractional (29.97 = 30000/1001); they are handled as exact fractions internally.
 """
 
-from nvp.media.audio import AAC_MAX_CHANNELS, AAC_RATES, AUDIO_LAYOUTS, aac_rate, read_audio, storable_audio
+from nvp.media.audio import (
+    AAC_MAX_CHANNELS,
+    AAC_RATES,
+    AUDIO_LAYOUTS,
+    AudioBlocks,
+    aac_rate,
+    read_audio,
+    storable_audio,
+)
 from nvp.media.frames import FORWARD_GAP_S, frames_at, iter_frames
 from nvp.media.probe import VideoInfo, audio_rate, has_audio, probe_video, rotate_frame
 from nvp.media.writer import VideoWriter
@@ -21,6 +29,7 @@ __all__ = [
     "AAC_MAX_CHANNELS",
     "AAC_RATES",
     "AUDIO_LAYOUTS",
+    "AudioBlocks",
     "FORWARD_GAP_S",
     "VideoInfo",
     "VideoWriter",

@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import os
 import secrets
+from collections.abc import Iterator
 from fractions import Fraction
 from pathlib import Path
 from types import TracebackType
@@ -15,7 +16,15 @@ from av.video.reformatter import ColorRange, Colorspace, VideoReformatter
 
 from nvp.artifact import DiskFullError, is_disk_full
 from nvp.errors import MediaError
-from nvp.media.audio import AAC_RATES, AUDIO_LAYOUTS, aac_rate, storable_audio
+from nvp.media.audio import (
+    AAC_RATES,
+    AUDIO_LAYOUTS,
+    AudioBlocks,
+    aac_rate,
+    storable_audio,
+    storable_blocks,
+    storable_channels,
+)
 from nvp.media.probe import (
     _AV_ERRORS,
     _to_fraction,
@@ -60,7 +69,9 @@ class VideoWriter:
 
     Audio (``float`` in ``[-1, 1]``, shape ``(n,)`` mono or ``(n, channels)`` with 1 to 8 channels, at
     ``audio_rate`` Hz) is AAC-encoded, interleaved with the video as frames arrive, and trimmed or
-    zero-padded to the video duration ``num_frames / fps``.
+    zero-padded to the video duration ``num_frames / fps``. ``audio_file``: instead of ``audio``, the
+    audio track of that file, read block by block as the video reaches it (:class:`AudioBlocks`), never
+    held whole: the same track as ``audio=read_audio(audio_file, None, mono=False)`` at its own rate.
 
     ``metadata`` is stored as container tags (arbitrary keys are kept in MP4 via ``use_metadata_tags``)
     and can be read back with ``av.open(path).metadata``.
@@ -86,12 +97,21 @@ class VideoWriter:
         metadata: dict[str, str] | None = None,
         live: bool = False,
         template: str | os.PathLike[str] | None = None,
+        audio_file: str | os.PathLike[str] | None = None,
     ) -> None:
         if width <= 0 or height <= 0:
             raise ValueError(f"width and height must be positive, got {width}x{height}")
         if audio_rate <= 0:
             raise ValueError(f"audio_rate must be positive, got {audio_rate}")
-        if audio is not None and not live:
+        if audio_file is not None and (audio is not None or live):
+            raise ValueError("give audio or audio_file, not both; a live writer's audio comes with add_audio")
+        self._feed: Iterator[np.ndarray] | None = None  # audio_file's blocks, at the rate AAC stores
+        self._source = None if audio_file is None else AudioBlocks(audio_file, None, mono=False)
+        if self._source is not None:
+            channels = storable_channels(self._source.channels)
+            audio, audio_rate = np.zeros((0, channels), np.float32), aac_rate(self._source.rate)
+            self._feed = storable_blocks(self._source, self._source.rate, self._source.channels)
+        elif audio is not None and not live:
             audio, audio_rate = storable_audio(audio, audio_rate)
         elif audio is not None and aac_rate(audio_rate) != audio_rate:
             raise MediaError(
@@ -133,6 +153,7 @@ class VideoWriter:
             self._container = av.open(self._tmp, "w", options=options)
         except _AV_ERRORS as exc:
             self._closed = True
+            self._close_source()
             raise MediaError(f"cannot write video '{self.path}': {exc}") from exc
         try:
             for key, value in (metadata or {}).items():
@@ -262,9 +283,23 @@ class VideoWriter:
         self._audio = np.concatenate([self._audio[:, self._audio_pos - self._audio_base :], more], 1)
         self._audio_base = self._audio_pos
 
+    def _read_audio(self, end: int) -> None:
+        """Reads ``audio_file`` on until the track holds sample index ``end`` (or the file ends)."""
+        more, available = [], self._audio_base + self._audio.shape[1]
+        while self._feed is not None and available < end:
+            block = next(self._feed, None)
+            if block is None:
+                self._feed = None
+            else:
+                more.append(block)
+                available += len(block)
+        if more:
+            self.add_audio(np.concatenate(more))
+
     def _write_audio(self, end: int, final: bool) -> None:
         """Encode audio samples up to sample index ``end`` (zero-padding past the input's end)."""
         assert self._audio is not None and self._astream is not None
+        self._read_audio(end)
         channels, held = self._audio.shape
         available = self._audio_base + held  # stream index just past the last sample given
         layout = AUDIO_LAYOUTS[channels]
@@ -301,6 +336,9 @@ class VideoWriter:
             self._closed = True
             if not self.live:
                 os.replace(self._tmp, self.path)
+        except MediaError:  # audio_file's decoding failed
+            self.abort()
+            raise
         except (*_AV_ERRORS, ValueError, OSError) as exc:
             self.abort()
             self._raise_write_error(exc, "finishing the file failed")
@@ -312,7 +350,10 @@ class VideoWriter:
             self._container.mux(self._vstream.encode(None))
         if self._astream is not None and self._audio is not None:
             total = round(Fraction(self.num_frames * self._audio_rate) / self.fps)
-            given = self._audio_base + self._audio.shape[1]
+            self._write_audio(total, final=True)
+            self._container.mux(self._astream.encode(None))
+            rest = sum(len(block) for block in self._feed or ())  # audio_file past the video: counted only
+            given = self._audio_base + self._audio.shape[1] + rest
             if abs(given - total) > self._audio_rate / self.fps:
                 logger.warning(
                     "audio for '%s' is %.3f s but the video is %.3f s; %s to match",
@@ -321,11 +362,14 @@ class VideoWriter:
                     total / self._audio_rate,
                     "trimmed" if given > total else "padded with silence",
                 )
-            self._write_audio(total, final=True)
-            self._container.mux(self._astream.encode(None))
         self._container.close()
         if self._template is not None:
             self._template.close()
+        self._close_source()
+
+    def _close_source(self) -> None:
+        if self._source is not None:
+            self._source.close()
 
     def _raise_write_error(self, exc: BaseException, what: str) -> None:
         if is_disk_full(exc):
@@ -347,6 +391,7 @@ class VideoWriter:
         if not self._closed:
             self._closed = True
             try:
+                self._close_source()
                 self._container.close()
                 if self._template is not None:
                     self._template.close()
