@@ -225,8 +225,7 @@ def speech_audio(audio_path: str | Path, rate: int) -> tuple[np.ndarray, float]:
     from nvp.media import AudioBlocks
 
     with AudioBlocks(audio_path, rate) as blocks:
-        mono = np.concatenate([np.zeros(0, np.float32), *blocks])
-    return mono, blocks.source_samples / blocks.source_rate
+        return blocks.read(), blocks.source_samples / blocks.source_rate
 
 
 def eye_requests(gaze: str | Path, seq: TrackedSequence, frames: int) -> np.ndarray | None:

@@ -87,8 +87,8 @@ class AudioBlocks:
     (:func:`read_audio` keeps the narrower one's channels).
 
     ``channels``: per block (1 when ``mono``); ``source_rate``: the stream's own rate; after iterating,
-    ``source_samples``: its length at that rate (``len(read_audio(path, None))``). Iterate once; the file
-    closes at the end, or with :meth:`close` (or ``with``).
+    ``source_samples``: its length at that rate (``len(read_audio(path, None))``). Iterate once (or
+    :meth:`read` all at once); the file closes at the end, or with :meth:`close` (or ``with``).
 
     Raises:
         MediaError: as :func:`read_audio` (samples that are not numbers: when the block holding them is
@@ -140,6 +140,22 @@ class AudioBlocks:
             raise MediaError(f"cannot read audio from '{self.path}': decoding failed ({exc})") from exc
         finally:
             self.close()
+
+    def read(self) -> np.ndarray:
+        """All the blocks as one array (:func:`read_audio`'s), each copied into it as it is decoded: only
+        the array is held (its size from the stream's stated length, grown when that is short), not the
+        blocks with it."""
+        stated = _stated_seconds(self._stream)
+        shape = () if self.channels == 1 else (self.channels,)
+        out, n = np.empty((round((stated or 0) * self.rate) + 1, *shape), np.float32), 0
+        for block in self:
+            if n + len(block) > len(out):
+                grown = np.empty((max(n + len(block), len(out) * 3 // 2), *shape), np.float32)
+                grown[:n] = out[:n]
+                out = grown
+            out[n : n + len(block)] = block
+            n += len(block)
+        return out[:n]
 
     def _counted(self, frames: Iterable[Any], stated: float | None) -> Iterator[Any]:
         """``frames`` as they come, their samples counted in ``source_samples`` (without the padding
