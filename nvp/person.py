@@ -70,6 +70,8 @@ __all__ = [  # the style's data and learning live in nvp.person_style and nvp.pe
     "apply_style",
     "closed_mouth",
     "closure_weight",
+    "network_features",
+    "opening_features",
     "opening_outputs",
     "opening_style",
     "pause_rest",
@@ -85,8 +87,10 @@ __all__ = [  # the style's data and learning live in nvp.person_style and nvp.pe
     "voiced_frames",
 ]
 
-WINDOW_BLOCK = 2048
-"""Video frames whose feature windows :func:`predict_expressions` builds at a time (25 MB for phonemes)."""
+WINDOW_BLOCK = 512
+"""Video frames whose feature windows :func:`predict_expressions` builds at a time: 6 MB for phonemes,
+12.5 MB for Whisper's states, and a few times that while they are made and read (2048 frames took up to
+200 MB on top of long audio's features; the outputs are the same)."""
 
 CLOSURE_RAMP = (0.5, 0.8)
 """Closure probabilities (the network's closure head) mapped linearly to blend weights 0 … 1 towards the
@@ -233,13 +237,19 @@ def predict_expressions(
         from nvp.audio_features import extract_features
 
         posteriors = extract_features(audio, sample_rate, kind="phonemes")
-    feats, opening_feats, _ = speech_features(audio, sample_rate, style, posteriors=posteriors)
+    # one kind of features held at a time, each only as long as it is read (long audio's memory: the
+    # recogniser's 2.3 MB a minute, Whisper's states 4.6 MB)
+    feats, opening_feats = network_features(audio, sample_rate, style, posteriors)
     # windows are made block by block: all of them at once would be (T, 16, 191) float32, 37 MB a minute
     shares: list[np.ndarray] = []  # the rounded share, read from each block as the network reads it
     blocks = iter_frame_windows(feats, fps, num_frames, block=WINDOW_BLOCK)
     audio_exp, closure = network_outputs(net, rounding_tap(style, blocks, shares))
+    del feats, blocks
     rounded = np.concatenate([np.zeros(0, np.float32), *shares]) if style.hears_rounding else None
+    if opening_feats is None:
+        opening_feats, _ = opening_features(audio, sample_rate, style)
     z = opening_outputs(style, opening_feats, fps, len(audio_exp))
+    del opening_feats
     voice = voice_activity(audio, sample_rate, fps, len(audio_exp))
     text_closure = None
     if transcript is not None:
@@ -301,15 +311,38 @@ def speech_features(
     An opening model with a pass of its own (``"whisper"``) reads ``audio[opening_from:]`` (a stream needs
     less context for it than for the network); the ``"phonetic"`` one (people fitted before) comes from
     the recogniser's one pass over all of ``audio``, so its features start at 0."""
+    feats, phonetic = network_features(audio, sample_rate, style, posteriors)
+    if phonetic is not None:
+        return feats, phonetic, 0
+    return feats, *opening_features(audio, sample_rate, style, opening_from)
+
+
+def network_features(
+    audio: np.ndarray, sample_rate: int, style: PersonStyle, posteriors: AudioFeatures | None = None
+) -> tuple[AudioFeatures, AudioFeatures | None]:
+    """The network's features of mono audio ``(S,)`` for a style (speaker-normalised, see
+    :func:`speech_features`), and the opening model's when they come from the same pass (the
+    ``"phonetic"`` ones of people fitted before; else None, :func:`opening_features` makes them)."""
     from nvp.audio_features import extract_features, recogniser_features, speaker_normalized
 
     model = style_opening_model(style)
     if model is not None and style.feature_kind == "phonemes" and model.feature_kind == "phonetic":
         feats, phonetic = recogniser_features(audio, sample_rate)
-        return speaker_normalized(feats), phonetic, 0
+        return speaker_normalized(feats), phonetic
     if posteriors is None or style.feature_kind != "phonemes":
         posteriors = extract_features(audio, sample_rate, kind=style.feature_kind)
-    feats = speaker_normalized(posteriors)
+    return speaker_normalized(posteriors), None
+
+
+def opening_features(
+    audio: np.ndarray, sample_rate: int, style: PersonStyle, opening_from: int = 0
+) -> tuple[AudioFeatures | None, int]:
+    """The features of the opening model of a style whose model has a pass of its own (see
+    :func:`speech_features`), read from ``audio[opening_from:]``, and ``opening_from``; None and 0 for a
+    style without an opening model."""
+    from nvp.audio_features import extract_features
+
+    model = style_opening_model(style)
     if model is None:
-        return feats, None, 0
-    return feats, extract_features(audio[opening_from:], sample_rate, kind=model.feature_kind), opening_from
+        return None, 0
+    return extract_features(audio[opening_from:], sample_rate, kind=model.feature_kind), opening_from

@@ -20,9 +20,24 @@ def test_glibc_keeps_freed_memory_and_arrays_still_work():
         del a
 
 
+@pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="glibc's allocator only")
+def test_freed_memory_kept_by_glibc_goes_back_to_the_system():
+    def rss_mb() -> float:
+        status = open("/proc/self/status").read()
+        return int(next(line.split()[1] for line in status.splitlines() if line.startswith("VmRSS:"))) / 1024
+
+    allocator.keep_freed_memory()
+    blocks = [np.ones(1 << 18, np.float32) for _ in range(200)]  # 200 MB in 1 MB arrays, from the heap
+    del blocks[:-1]  # the last one keeps the heap's top: only a trim of its middle gives the rest back
+    before = rss_mb()
+    assert allocator.release_freed_memory() is True
+    assert rss_mb() < before - 100
+
+
 def test_other_systems_are_left_alone(monkeypatch):
     monkeypatch.setattr(sys, "platform", "darwin")
     assert allocator.keep_freed_memory() is False
+    assert allocator.release_freed_memory() is False
 
 
 def test_the_cli_sets_it_before_any_command(monkeypatch):

@@ -96,6 +96,19 @@ def babble(seconds: float, sr: int = SR, seed: int = 0) -> np.ndarray:
 # ------------------------------------------------------------------------------------ shapes and rates
 
 
+def test_clean_16k_audio_is_used_as_it_is_other_audio_is_copied_and_cleaned():
+    from nvp.audio_features import prepare_audio
+
+    clean = speechlike(1.0)
+    assert prepare_audio(clean, SR) is clean  # no copy of what the dub already holds (an hour: 230 MB)
+    dirty = clean.copy()
+    dirty[[10, 20, 30]] = [np.nan, 2.0, -np.inf]
+    out = prepare_audio(dirty, SR)
+    assert out is not dirty and np.isnan(dirty[10]) and dirty[20] == 2.0  # the caller's audio untouched
+    assert list(out[[10, 20, 30]]) == [0.0, 1.0, -1.0] and np.array_equal(out[:10], clean[:10])
+    assert prepare_audio(clean.astype(np.float64), SR).dtype == np.float32
+
+
 def test_mel_shapes_and_rate():
     audio = speechlike(1.0)
     f = extract_features(audio, SR, kind="mel")

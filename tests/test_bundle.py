@@ -500,6 +500,32 @@ def test_a_dub_that_fails_on_its_input_leaves_no_parts_an_interrupted_one_keeps_
     assert out.exists() and not parts_folder(out).exists()
 
 
+def test_a_dub_whose_audio_changes_before_the_join_keeps_its_parts_for_the_same_audio(
+    fitted, tmp_path, monkeypatch, capsys
+):
+    from nvp.app.dub import DubParts, dub, parts_folder
+
+    wav, out = tmp_path / "s.wav", tmp_path / "o.mp4"
+    sf.write(wav, speech(1.0), 22050)
+    kept = wav.read_bytes()
+    real_write = DubParts.write
+
+    def write_then_change(self, *a, **k):  # the join reads the audio from the file again
+        real_write(self, *a, **k)
+        sf.write(wav, speech(1.0, seed=1), 22050)
+
+    monkeypatch.setattr(DubParts, "write", write_then_change)
+    with pytest.raises(NvpError, match="s.wav was moved or changed while it was dubbed"):
+        dub(wav, fitted, out, progress=False)
+    assert (parts_folder(out) / "part-00000.mp4").exists() and not out.exists()
+    monkeypatch.undo()
+    wav.write_bytes(kept)
+    capsys.readouterr()
+    dub(wav, fitted, out, progress=False)
+    assert "(all 25 frames rendered, joining)" in capsys.readouterr().err
+    assert out.exists() and not parts_folder(out).exists()
+
+
 def test_a_resumed_fit_says_so_and_one_left_by_another_nvp_starts_again(
     demo_clip, tmp_path, monkeypatch, capsys, caplog
 ):

@@ -151,6 +151,7 @@ def dub(
     what the audio says, whose p, b and m then close the lips (:mod:`nvp.transcript`); ``gaze``: where the
     eyes look, ``"footage"`` (where they look in the footage), ``"camera"`` (into the lens) or a gaze file
     (:mod:`nvp.gaze`, angles in the face's frame), the footage's eyes turned (:mod:`renderer.eyes`)."""
+    from nvp.allocator import release_freed_memory
     from nvp.artifact import check_output_file
     from nvp.audio_features import SAMPLE_RATE
     from nvp.media import frames_at
@@ -178,6 +179,7 @@ def dub(
         mono, SAMPLE_RATE, seq.fps, person.style, net, num_frames=n_out, transcript=transcript
     )
     del mono  # the features are made: 230 MB an hour of audio
+    release_freed_memory()  # their temporaries, which grow with the audio, are not kept for the rendering
     order = target_frame_indices(n_out, seq.num_frames)
     weights = model.mouth_weights()
     extra = {**(details or {}), **person.mark, **gaze_mark(gaze)}
@@ -397,15 +399,17 @@ class DubParts:
         if not isinstance(error, DiskFullError):
             shutil.rmtree(self.root, ignore_errors=True)
 
-    def join(self, output: Path, seq: TrackedSequence, **audio_and_tags) -> None:
-        """Writes ``output`` (atomically): the parts' video, copied, with the audio and tags
-        (:class:`nvp.media.VideoWriter`'s keywords); then the parts go."""
+    def join(self, output: Path, seq: TrackedSequence, audio_file: str | Path, **tags) -> None:
+        """Writes ``output`` (atomically): the parts' video, copied, with the track of ``audio_file`` read
+        from it block by block (it must still be the file the dub heard) and the tags
+        (:class:`nvp.media.VideoWriter`'s ``metadata``); then the parts go."""
         from nvp.media import VideoWriter
 
+        self._check_audio(Path(audio_file))
         videos = [self._video(i) for i in range(-(-self.frames // PART_FRAMES))]
         try:
             with VideoWriter(
-                output, seq.fps, seq.width, seq.height, template=videos[0], **audio_and_tags
+                output, seq.fps, seq.width, seq.height, template=videos[0], audio_file=audio_file, **tags
             ) as vw:
                 for video in videos:
                     vw.append(video)
@@ -413,3 +417,14 @@ class DubParts:
             self._discard_after(e)
             raise
         shutil.rmtree(self.root, ignore_errors=True)
+
+    def _check_audio(self, audio_file: Path) -> None:
+        """NvpError when ``audio_file`` is gone or is no longer the audio of the key (moved or changed while
+        it was dubbed); the parts stay, for a resume with the same audio."""
+        from nvp.artifact import file_sha256
+
+        if not audio_file.is_file() or file_sha256(audio_file) != self.key["audio_sha256"]:
+            raise NvpError(
+                f"{audio_file} was moved or changed while it was dubbed: the finished parts are kept in "
+                f"{self.root} for the same audio; run the dub again"
+            )
