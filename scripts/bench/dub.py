@@ -74,7 +74,7 @@ def child(audio: str, person: str, out: str, profile: bool = False, glibc_defaul
     if prof:
         prof.disable()
     wall = time.perf_counter() - t0
-    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    rss = peak_rss_mb()
     m = {"frames": r.frames, "audio_s": r.audio_seconds, "wall_s": wall, "peak_rss_mb": rss}
     if prof:
         stats = pstats.Stats(prof).stats  # (file, line, function) → (calls, prim calls, tt, ct, callers)
@@ -103,6 +103,18 @@ def run_child(audio: Path, person: Path, out: Path, *extra: str, env: dict | Non
     cmd = [sys.executable, "-m", "scripts.bench.dub", "--child", str(audio), str(person), str(out), *extra]
     proc = subprocess.run(cmd, capture_output=True, text=True, check=True, env=env)
     return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def peak_rss_mb() -> float:
+    """This process's peak resident memory in MB since it started: Linux's ``VmHWM``, not ``ru_maxrss``,
+    which a process started by ``subprocess`` inherits from its parent (the kernel keeps the larger of the
+    two across the ``exec``: a child of a parent that peaked at 940 MB reports at least 940 MB)."""
+    try:
+        status = Path("/proc/self/status").read_text()
+    except OSError:
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    kb = next(line.split()[1] for line in status.splitlines() if line.startswith("VmHWM:"))
+    return int(kb) / 1024
 
 
 def cpu_name() -> str:
