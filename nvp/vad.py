@@ -52,8 +52,9 @@ CONTEXT = 64
 """Samples before each chunk that the network also reads."""
 VAD_RATE = SAMPLE_RATE / CHUNK
 """Speech probabilities per second (31.25 Hz)."""
-_BATCH_CHUNKS = 4096
-"""Chunks whose convolutions run as one batch (131 s of audio, about 20 MB of activations)."""
+_BATCH_CHUNKS = 1024
+"""Chunks whose convolutions run as one batch (33 s of audio). The probabilities do not depend on it; 4096
+(131 s) took about 100 MB while it ran, which glibc then kept (:mod:`nvp.allocator`), no faster."""
 
 SPEECH_THRESHOLD = 0.5
 """Speech probability at or above which a 32 ms chunk is speech (Silero's own default)."""

@@ -381,6 +381,17 @@ def test_audio_blocks_refuse_samples_that_are_not_numbers(tmp_path: Path) -> Non
         media.AudioBlocks(video_without_audio(tmp_path / "silent.mp4"))
 
 
+def test_audio_blocks_of_all_channels_need_the_stated_layout(tmp_path: Path, monkeypatch) -> None:
+    from types import SimpleNamespace
+
+    wav = noise_wav(tmp_path / "a.wav", 22050, 2, 0.2)
+    unstated = SimpleNamespace(layout=SimpleNamespace(name="", nb_channels=0), sample_rate=22050)
+    monkeypatch.setattr(media.audio, "_audio_stream", lambda *a: SimpleNamespace(codec_context=unstated))
+    with pytest.raises(MediaError, match="a.wav.*channel layout is not stated"):
+        media.AudioBlocks(wav, None, mono=False)
+    assert media.AudioBlocks(wav, 16000).channels == 1  # mono: each frame's own layout is mixed
+
+
 def video_without_audio(path: Path) -> Path:
     with VideoWriter(path, 25, 16, 16) as w:
         w.write(pattern(0, 16, 16))

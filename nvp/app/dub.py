@@ -226,6 +226,7 @@ def speech_audio(audio_path: str | Path, rate: int) -> tuple[np.ndarray, float]:
     which sets the dub's length)."""
     from nvp.media import AudioBlocks
 
+    AudioBlocks(audio_path, None, mono=False).close()  # as the join reads it: fails now, not after rendering
     with AudioBlocks(audio_path, rate) as blocks:
         return blocks.read(), blocks.source_samples / blocks.source_rate
 

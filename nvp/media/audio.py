@@ -111,6 +111,9 @@ class AudioBlocks:
         self.rate = self.source_rate if sample_rate is None else int(sample_rate)
         self.mono = mono
         self.channels = 1 if mono else source_channels
+        if self.channels < 1:
+            self.close()
+            raise MediaError(f"cannot read audio from '{self.path}': its channel layout is not stated")
         self.source_samples = 0
 
     def __enter__(self) -> AudioBlocks:
