@@ -51,10 +51,9 @@ class Group:
         if self.world == 1:
             return value
         import torch
-        import torch.distributed as dist
 
         t = torch.tensor([value], dtype=torch.float64)
-        dist.all_reduce(t)
+        _all_reduce(t)
         return float(t.item()) / self.world
 
     def total(self, local: torch.Tensor) -> torch.Tensor:
@@ -62,11 +61,31 @@ class Group:
         other processes' parts are constants here; each process differentiates its own)."""
         if self.world == 1:
             return local
-        import torch.distributed as dist
 
         others = local.detach().clone()
-        dist.all_reduce(others)
+        _all_reduce(others)
         return local + (others - local.detach())
+
+
+def _all_reduce(t: torch.Tensor, patience: float = 10.0) -> None:
+    """Sum ``t`` over the processes in place, and return only once gloo has let go of it.
+
+    gloo's worker thread drops its reference to a finished operation a moment after the caller's wait ends,
+    and a later barrier keeps the operations still in progress alive. When Python has already dropped the
+    tensor, that last reference frees its Python object from the worker thread, which must take the GIL; at
+    interpreter exit this kills the process (``terminate called without an active exception``, SIGABRT:
+    caught in a core dump of the torchrun test on a busy core, about 1 run in 30). Waiting here until Python
+    holds the only reference (``patience`` seconds at most) leaves nothing for the worker to free later."""
+    import time
+
+    import torch.distributed as dist
+
+    dist.all_reduce(t)
+    if dist.get_backend() != "gloo":
+        return
+    deadline = time.monotonic() + patience
+    while t._use_count() > 1 and time.monotonic() < deadline:
+        time.sleep(1e-4)
 
 
 def process_group(device: str = "cpu") -> Group:
