@@ -375,7 +375,7 @@ def train_renderer(
         opt.zero_grad(set_to_none=True)
         loss.backward()
         if world > 1:
-            average_gradients(opt, world)
+            average_gradients(opt, group)
         opt.step()
         if critic is not None:
             critic_opt.zero_grad(set_to_none=True)  # also drops what the renderer's loss left on it
@@ -433,15 +433,14 @@ def train_renderer(
     return info
 
 
-def average_gradients(opt: torch.optim.Optimizer, world: int) -> None:
-    """Replace every gradient of ``opt``'s parameters by its mean over the ``world`` training processes
-    (parameters without a gradient, the textures a step did not use, are left alone alike everywhere)."""
-    import torch.distributed as dist
-
+def average_gradients(opt: torch.optim.Optimizer, group) -> None:
+    """Replace every gradient of ``opt``'s parameters by its mean over the training processes of ``group``
+    (``nvp.app.distributed.Group``; parameters without a gradient, the textures a step did not use, are
+    left alone alike everywhere)."""
     grads = [p.grad for g in opt.param_groups for p in g["params"] if p.grad is not None]
     flat = torch.cat([g.reshape(-1) for g in grads])
-    dist.all_reduce(flat)
-    flat /= world
+    group.add_up(flat)
+    flat /= group.world
     offset = 0
     for g in grads:
         g.copy_(flat[offset : offset + g.numel()].view_as(g))

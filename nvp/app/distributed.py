@@ -46,6 +46,29 @@ class Group:
 
             dist.barrier()
 
+    def add_up(self, t: torch.Tensor, patience: float = 10.0) -> None:
+        """Sum ``t`` over the processes in place, and return only once gloo has let go of it.
+
+        gloo's worker thread drops its reference to a finished operation a moment after the caller's wait
+        ends, and a later barrier keeps the operations still in progress alive. When Python has already
+        dropped the tensor, that last reference frees its Python object from the worker thread, which must
+        take the GIL; at interpreter exit this kills the process (``terminate called without an active
+        exception``, SIGABRT: caught in a core dump of the torchrun test on a busy core, about 1 run in 30).
+        Waiting here until Python holds the only reference (``patience`` seconds at most) leaves nothing for
+        the worker to free later."""
+        if self.world == 1:
+            return
+        import time
+
+        import torch.distributed as dist
+
+        dist.all_reduce(t)
+        if dist.get_backend() != "gloo":
+            return
+        deadline = time.monotonic() + patience
+        while t._use_count() > 1 and time.monotonic() < deadline:
+            time.sleep(1e-4)
+
     def mean(self, value: float) -> float:
         """The mean of ``value`` over the processes."""
         if self.world == 1:
@@ -53,7 +76,7 @@ class Group:
         import torch
 
         t = torch.tensor([value], dtype=torch.float64)
-        _all_reduce(t)
+        self.add_up(t)
         return float(t.item()) / self.world
 
     def total(self, local: torch.Tensor) -> torch.Tensor:
@@ -63,29 +86,8 @@ class Group:
             return local
 
         others = local.detach().clone()
-        _all_reduce(others)
+        self.add_up(others)
         return local + (others - local.detach())
-
-
-def _all_reduce(t: torch.Tensor, patience: float = 10.0) -> None:
-    """Sum ``t`` over the processes in place, and return only once gloo has let go of it.
-
-    gloo's worker thread drops its reference to a finished operation a moment after the caller's wait ends,
-    and a later barrier keeps the operations still in progress alive. When Python has already dropped the
-    tensor, that last reference frees its Python object from the worker thread, which must take the GIL; at
-    interpreter exit this kills the process (``terminate called without an active exception``, SIGABRT:
-    caught in a core dump of the torchrun test on a busy core, about 1 run in 30). Waiting here until Python
-    holds the only reference (``patience`` seconds at most) leaves nothing for the worker to free later."""
-    import time
-
-    import torch.distributed as dist
-
-    dist.all_reduce(t)
-    if dist.get_backend() != "gloo":
-        return
-    deadline = time.monotonic() + patience
-    while t._use_count() > 1 and time.monotonic() < deadline:
-        time.sleep(1e-4)
 
 
 def process_group(device: str = "cpu") -> Group:
