@@ -28,13 +28,9 @@ MMAP_THRESHOLD = 32 << 20
 def keep_freed_memory() -> bool:
     """Set glibc's allocator to keep freed memory (see the module); False where the C library is not glibc
     (macOS, musl: nothing is changed) or glibc refuses a value."""
-    if not sys.platform.startswith("linux"):
+    mallopt = _glibc("mallopt", (ctypes.c_int, ctypes.c_int))
+    if mallopt is None:
         return False
-    try:
-        mallopt = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").mallopt
-    except (OSError, AttributeError):
-        return False
-    mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
     return bool(mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD)) and bool(mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD))
 
 
@@ -42,11 +38,17 @@ def release_freed_memory() -> bool:
     """Give the memory glibc holds freed back to the system (``malloc_trim``), once after a step whose
     temporaries grew with the input (a long dub's audio to expressions, before it renders): kept, it would
     add to what the next step allocates anew. False where the C library is not glibc."""
+    trim = _glibc("malloc_trim", (ctypes.c_size_t,))
+    return trim is not None and bool(trim(0))
+
+
+def _glibc(name: str, argtypes: tuple):
+    """glibc's function ``name`` (returning an int), or None where the C library is not glibc's."""
     if not sys.platform.startswith("linux"):
-        return False
+        return None
     try:
-        trim = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim
+        func = getattr(ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6"), name)
     except (OSError, AttributeError):
-        return False
-    trim.argtypes, trim.restype = (ctypes.c_size_t,), ctypes.c_int
-    return bool(trim(0))
+        return None
+    func.argtypes, func.restype = argtypes, ctypes.c_int
+    return func
