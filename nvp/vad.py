@@ -221,9 +221,12 @@ def speech_activity(audio: np.ndarray, sample_rate: int, min_active_s: float = S
     Silence, room tone, white noise and music give False; speech, even quiet or noisy, gives True.
     """
     p = speech_probability(audio, sample_rate)
-    needed = max(1, int(math.ceil(min_active_s * VAD_RATE - 1e-9)))
-    active = int(np.count_nonzero(p >= SPEECH_THRESHOLD))
-    return active >= min(needed, len(p))
+    return enough_speech(int(np.count_nonzero(p >= SPEECH_THRESHOLD)), len(p), min_active_s)
+
+
+def enough_speech(active: int, chunks: int, min_active_s: float = SPEECH_MIN_ACTIVE_S) -> bool:
+    """:func:`speech_activity` from its counts: ``active`` of ``chunks`` 32 ms chunks are speech."""
+    return active >= min(max(1, int(math.ceil(min_active_s * VAD_RATE - 1e-9))), chunks)
 
 
 # ----------------------------------------------------------------------------- per video frame

@@ -595,6 +595,44 @@ def test_expression_stream_is_causal_and_follows_whole_file_prediction(bundle, o
     assert np.corrcoef(g_live, g_whole)[0, 1] > 0.8
 
 
+def test_long_audio_in_blocks_holds_one_block_and_follows_whole_file_prediction(bundle):
+    """``nvp dub``'s expressions of long audio (nvp.long_audio): audio within one block is predicted
+    exactly as a whole; longer audio block by block, holding at most a block and its context, close to
+    whole-file prediction; its speech counted as nvp.vad.speech_activity counts it."""
+    from nvp.audio2exp import default_audio2exp
+    from nvp.long_audio import BlockedExpressions
+    from nvp.person import PersonStyle, predict_expressions
+    from nvp.vad import speech_activity
+
+    style = PersonStyle.load(bundle / "style.json")
+    net, _ = default_audio2exp(style.feature_kind)
+    rng = np.random.default_rng(5)
+    audio = np.concatenate([np.zeros(16000, np.float32), speechlike(7.0, 16000, seed=4)])
+    whole = predict_expressions(audio, 16000, 25.0, style, net, num_frames=201)
+
+    def blocked(block_s: float, context_s: float) -> tuple[np.ndarray, BlockedExpressions, int]:
+        stream, held = BlockedExpressions(style, net, 25.0, block_s=block_s, context_s=context_s), 0
+        at = 0
+        while at < len(audio):
+            piece = int(rng.integers(100, 4000))
+            stream.push(audio[at : at + piece])
+            held, at = max(held, stream.held), at + piece
+        return stream.finish(201), stream, held
+
+    one, stream, _ = blocked(8.0, 1.0)  # 8 s of audio: one block, the whole file's prediction exactly
+    assert np.array_equal(one, whole) and stream.has_speech() == speech_activity(audio, 16000) is True
+    parts, stream, held = blocked(2.0, 1.0)  # four blocks
+    assert parts.shape == whole.shape and stream.has_speech()
+    assert held <= (2.0 + 2 * 1.0) * 16000 + 4000  # a block, its context on both sides, one piece
+    model = default_face_model()
+    ident = np.zeros(model.num_id, np.float32)
+    gap_parts, gap_whole = model.inner_lip_gap(ident, parts), model.inner_lip_gap(ident, whole)
+    assert np.corrcoef(gap_parts, gap_whole)[0, 1] > 0.9
+    silent = BlockedExpressions(style, net, 25.0, block_s=2.0, context_s=1.0)
+    silent.push(np.zeros(6 * 16000, np.float32))
+    assert silent.finish().shape == (150, whole.shape[1]) and not silent.has_speech()
+
+
 def test_live_dubs_a_stream_in_real_time_and_to_a_pipe(bundle, tmp_path):
     import subprocess
     import sys

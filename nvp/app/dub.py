@@ -153,13 +153,9 @@ def dub(
     (:mod:`nvp.gaze`, angles in the face's frame), the footage's eyes turned (:mod:`renderer.eyes`)."""
     from nvp.allocator import release_freed_memory
     from nvp.artifact import check_output_file
-    from nvp.audio_features import SAMPLE_RATE
     from nvp.media import frames_at
-    from nvp.person import predict_expressions
     from nvp.provenance import synthetic_mark
     from nvp.schedule import target_frame_indices
-    from nvp.vad import speech_activity
-    from nvp.windows import num_video_frames
     from renderer.loop import render_frames
     from renderer.render import FrameRenderer
 
@@ -168,18 +164,12 @@ def dub(
         check_output_file(output, inputs=(audio_path,)), (audio_path, bundle_dir, style, gaze_file(gaze))
     )
     bundle = PersonBundle.load(bundle_dir)
-    mono, duration = speech_audio(audio_path, SAMPLE_RATE)
-    if len(mono) == 0 or not speech_activity(mono, SAMPLE_RATE):
-        raise NvpError(f"{audio_path}: no speech found (silence, noise or music only, or too quiet)")
     person = load_person(bundle, style)
-    net, seq, model = person.net, person.tracked, person.model
-    n_out = num_video_frames(duration, seq.fps)
+    seq, model = person.tracked, person.model
+    expression, duration = speech_expressions(audio_path, person, transcript, progress)
+    release_freed_memory()  # the features' temporaries are not kept for the rendering
+    n_out = len(expression)
     looks = eye_requests(gaze, seq, n_out)
-    expression = predict_expressions(
-        mono, SAMPLE_RATE, seq.fps, person.style, net, num_frames=n_out, transcript=transcript
-    )
-    del mono  # the features are made: 230 MB an hour of audio
-    release_freed_memory()  # their temporaries, which grow with the audio, are not kept for the rendering
     order = target_frame_indices(n_out, seq.num_frames)
     weights = model.mouth_weights()
     extra = {**(details or {}), **person.mark, **gaze_mark(gaze)}
@@ -219,16 +209,39 @@ def dub(
     return DubResult(out, n_out, seq.fps, duration, seconds, order, expression, n_out - first)
 
 
-def speech_audio(audio_path: str | Path, rate: int) -> tuple[np.ndarray, float]:
-    """What a dub hears of ``audio_path``: its mono mix at ``rate`` Hz, decoded block by block (the track
-    at its own rate and channels is never held whole; the join reads it again, :class:`DubParts`), and its
-    duration in seconds at its own rate (``len(read_audio(audio_path, None)) / audio_rate(audio_path)``,
-    which sets the dub's length)."""
+def speech_expressions(
+    audio_path: str | Path, person: Person, transcript: tuple[str, str] | None, progress: bool
+) -> tuple[np.ndarray, float]:
+    """The person's expressions ``(T, K_exp)`` for the speech of ``audio_path``, one per frame of the dub,
+    and the audio's duration in seconds at its own rate (``len(read_audio(audio_path, None)) /
+    audio_rate(audio_path)``, which sets the dub's length). The audio is decoded as mono 16 kHz and predicted
+    block by block (:class:`nvp.long_audio.BlockedExpressions`): neither the track nor its 16 kHz copy is
+    held whole (the join reads the file again, :class:`DubParts`). NvpError when it holds no speech."""
+    from tqdm import tqdm
+
+    from nvp.audio_features import SAMPLE_RATE
+    from nvp.long_audio import BlockedExpressions
     from nvp.media import AudioBlocks
+    from nvp.windows import num_video_frames
 
     AudioBlocks(audio_path, None, mono=False).close()  # as the join reads it: fails now, not after rendering
-    with AudioBlocks(audio_path, rate) as blocks:
-        return blocks.read(), blocks.source_samples / blocks.source_rate
+    fps = person.tracked.fps
+    stream = BlockedExpressions(person.style, person.net, fps, transcript)
+    with AudioBlocks(audio_path, SAMPLE_RATE) as blocks:
+        stated = blocks.stated_seconds
+        total = None if stated is None else num_video_frames(stated, fps)
+        with tqdm(total=total, desc="dub: speech", unit="frame", disable=not progress) as bar:
+            for block in blocks:
+                stream.push(block)
+                bar.update(stream.done - bar.n)
+            duration = blocks.source_samples / blocks.source_rate
+            n_out = num_video_frames(duration, fps)
+            if stream.received:
+                expression = stream.finish(n_out)
+                bar.update(stream.done - bar.n)
+    if not stream.received or not stream.has_speech():
+        raise NvpError(f"{audio_path}: no speech found (silence, noise or music only, or too quiet)")
+    return expression, duration
 
 
 def eye_requests(gaze: str | Path, seq: TrackedSequence, frames: int) -> np.ndarray | None:

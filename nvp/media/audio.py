@@ -115,6 +115,8 @@ class AudioBlocks:
             self.close()
             raise MediaError(f"cannot read audio from '{self.path}': its channel layout is not stated")
         self.source_samples = 0
+        self.stated_seconds = _stated_seconds(self._stream)
+        """The stream's length as its container states it (None when it does not)."""
 
     def __enter__(self) -> AudioBlocks:
         return self
@@ -126,7 +128,7 @@ class AudioBlocks:
         self._container.close()
 
     def __iter__(self) -> Iterator[np.ndarray]:
-        stated = _stated_seconds(self._stream)
+        stated = self.stated_seconds
         try:
             frames = self._counted(self._container.decode(self._stream), stated)
             chunks = _resampled(frames, self.rate, None if self.mono else self.layout)
@@ -148,7 +150,7 @@ class AudioBlocks:
         """All the blocks as one array (:func:`read_audio`'s), each copied into it as it is decoded: only
         the array is held (its size from the stream's stated length, grown when that is short), not the
         blocks with it."""
-        stated = _stated_seconds(self._stream)
+        stated = self.stated_seconds
         shape = () if self.channels == 1 else (self.channels,)
         out, n = np.empty((round((stated or 0) * self.rate) + 1, *shape), np.float32), 0
         for block in self:

@@ -37,7 +37,7 @@ STAGES = {
     "teeth choice": ("renderer/interior.py", "entry_costs"),
     "paste": ("renderer/crop.py", "paste_region"),
     "encode": ("nvp/media/writer.py", "write"),
-    "audio → expressions": ("nvp/person.py", "predict_expressions"),
+    "audio → expressions": ("nvp/app/dub.py", "speech_expressions"),
 }
 """Stage → (file, function) whose cumulative time is the stage's."""
 
