@@ -351,8 +351,6 @@ def test_audio_blocks_are_read_audio_in_pieces(tmp_path: Path, rate: int, channe
     mono = media.AudioBlocks(wav, 16000)
     assert np.array_equal(blocks_of(mono)[0], read_audio(wav, 16000))
     assert mono.source_samples == len(whole) and mono.channels == 1
-    assert np.array_equal(media.AudioBlocks(wav, None, mono=False).read(), whole)
-    assert np.array_equal(media.AudioBlocks(wav, 16000).read(), read_audio(wav, 16000))
 
 
 def test_audio_blocks_drop_the_aac_padding_as_read_audio_does(clip: Path) -> None:
@@ -361,14 +359,16 @@ def test_audio_blocks_drop_the_aac_padding_as_read_audio_does(clip: Path) -> Non
     assert len(streamed) == blocks.source_samples == 6400  # 0.4 s of AAC, decoded to 7 x 1024 samples
     assert np.array_equal(streamed, read_audio(clip, None))
     assert np.array_equal(blocks_of(media.AudioBlocks(clip, 8000))[0], read_audio(clip, 8000))
-    assert np.array_equal(media.AudioBlocks(clip, 8000).read(), read_audio(clip, 8000))
 
 
-def test_audio_blocks_read_whole_a_stream_of_unknown_length(tmp_path: Path, monkeypatch) -> None:
+def test_audio_blocks_read_a_stream_of_unknown_length(tmp_path: Path, monkeypatch) -> None:
     wav = noise_wav(tmp_path / "a.wav", 44100, 2, 3.0)
-    monkeypatch.setattr(media.audio, "_stated_seconds", lambda stream: None)  # the buffer grows from 1 sample
-    assert np.array_equal(media.AudioBlocks(wav, None, mono=False).read(), read_audio(wav, None, mono=False))
-    assert np.array_equal(media.AudioBlocks(wav, 16000).read(), read_audio(wav, 16000))
+    assert media.AudioBlocks(wav, 16000).stated_seconds == pytest.approx(3.0)
+    monkeypatch.setattr(media.audio, "_stated_seconds", lambda stream: None)
+    blocks = media.AudioBlocks(wav, None, mono=False)
+    assert blocks.stated_seconds is None
+    assert np.array_equal(blocks_of(blocks)[0], read_audio(wav, None, mono=False))
+    assert np.array_equal(blocks_of(media.AudioBlocks(wav, 16000))[0], read_audio(wav, 16000))
 
 
 def test_audio_blocks_refuse_samples_that_are_not_numbers(tmp_path: Path) -> None:
@@ -386,7 +386,8 @@ def test_audio_blocks_of_all_channels_need_the_stated_layout(tmp_path: Path, mon
 
     wav = noise_wav(tmp_path / "a.wav", 22050, 2, 0.2)
     unstated = SimpleNamespace(layout=SimpleNamespace(name="", nb_channels=0), sample_rate=22050)
-    monkeypatch.setattr(media.audio, "_audio_stream", lambda *a: SimpleNamespace(codec_context=unstated))
+    stream = SimpleNamespace(codec_context=unstated, duration=None)  # no length stated either
+    monkeypatch.setattr(media.audio, "_audio_stream", lambda *a: stream)
     with pytest.raises(MediaError, match="a.wav.*channel layout is not stated"):
         media.AudioBlocks(wav, None, mono=False)
     assert media.AudioBlocks(wav, 16000).channels == 1  # mono: each frame's own layout is mixed

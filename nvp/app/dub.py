@@ -1,6 +1,7 @@
 """``nvp dub``: make a fitted person say new audio.
 
-audio → expressions of the person (``nvp.person.predict_expressions``) → target frames played forward then
+audio → expressions of the person (``nvp.person.predict_expressions``, in blocks of long audio:
+``nvp.long_audio``) → target frames played forward then
 backward as long as the audio lasts (head pose, eyes and blinks from the footage) → mouth from the audio
 → neural rendering composited into the footage (``renderer.loop.render_frames``) → mp4 with the input
 audio, marked as synthetic.

@@ -86,9 +86,10 @@ class AudioBlocks:
     whose channel layout changes mid-stream (rare) keeps its first layout, FFmpeg mixing the others to it
     (:func:`read_audio` keeps the narrower one's channels).
 
-    ``channels``: per block (1 when ``mono``); ``source_rate``: the stream's own rate; after iterating,
-    ``source_samples``: its length at that rate (``len(read_audio(path, None))``). Iterate once (or
-    :meth:`read` all at once); the file closes at the end, or with :meth:`close` (or ``with``).
+    ``channels``: per block (1 when ``mono``); ``source_rate``: the stream's own rate; ``stated_seconds``:
+    its length as the container states it (None when it does not); after iterating, ``source_samples``: its
+    length at that rate (``len(read_audio(path, None))``). Iterate once; the file closes at the end, or with
+    :meth:`close` (or ``with``).
 
     Raises:
         MediaError: as :func:`read_audio` (samples that are not numbers: when the block holding them is
@@ -116,7 +117,6 @@ class AudioBlocks:
             raise MediaError(f"cannot read audio from '{self.path}': its channel layout is not stated")
         self.source_samples = 0
         self.stated_seconds = _stated_seconds(self._stream)
-        """The stream's length as its container states it (None when it does not)."""
 
     def __enter__(self) -> AudioBlocks:
         return self
@@ -145,22 +145,6 @@ class AudioBlocks:
             raise MediaError(f"cannot read audio from '{self.path}': decoding failed ({exc})") from exc
         finally:
             self.close()
-
-    def read(self) -> np.ndarray:
-        """All the blocks as one array (:func:`read_audio`'s), each copied into it as it is decoded: only
-        the array is held (its size from the stream's stated length, grown when that is short), not the
-        blocks with it."""
-        stated = self.stated_seconds
-        shape = () if self.channels == 1 else (self.channels,)
-        out, n = np.empty((round((stated or 0) * self.rate) + 1, *shape), np.float32), 0
-        for block in self:
-            if n + len(block) > len(out):
-                grown = np.empty((max(n + len(block), len(out) * 3 // 2), *shape), np.float32)
-                grown[:n] = out[:n]
-                out = grown
-            out[n : n + len(block)] = block
-            n += len(block)
-        return out[:n]
 
     def _counted(self, frames: Iterable[Any], stated: float | None) -> Iterator[Any]:
         """``frames`` as they come, their samples counted in ``source_samples`` (without the padding
