@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from nvp.allocator import release_freed_memory
 from nvp.audio_features import SAMPLE_RATE
 from nvp.errors import NvpError
 
@@ -142,3 +143,5 @@ class BlockedExpressions:
         self._pieces = [] if final else [audio[keep - self._offset :].copy()]  # not a view of all of it
         self.held = len(self._pieces[0]) if self._pieces else 0
         self._offset = keep
+        del audio, seg, expr, p
+        release_freed_memory()  # each block's temporaries, kept, fragment what the next one allocates

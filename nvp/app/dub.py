@@ -381,8 +381,8 @@ class DubParts:
         seq: TrackedSequence,
     ) -> None:
         """Encodes the frames after the finished parts (``made`` by :func:`renderer.loop.render_frames`,
-        which fills ``decided`` with their entries) part after part; a part is finished once its video is
-        complete and its last frame's entries are recorded."""
+        which fills ``decided`` with their entries; those of finished parts are taken out of it) part after
+        part; a part is finished once its video is complete and its last frame's entries are recorded."""
         from nvp.artifact import write_json
         from nvp.media import VideoWriter
 
@@ -398,6 +398,8 @@ class DubParts:
                     writer.close()
                     writer = None
                     write_json(self._notes(j // PART_FRAMES), {"entries": decided[j - first]})
+                    del decided[: j + 1 - first]  # not held for the whole dub: a long one's would grow
+                    first = j + 1
         except NvpError as e:
             self._discard_after(e)
             raise
