@@ -36,7 +36,7 @@ BLOCK_S = 120.0
 more than a 1-minute dub's, whose peak is its rendering's, not its features'."""
 CONTEXT_S = 4.0
 """Seconds of audio before and after a block that its prediction also reads, the features' own cross-fade
-(see the module docstring). ``scripts/bench/long_audio.py``, 10 minutes of eight speech clips in five
+(see the module docstring). ``scripts/bench/long_audio.py``, 10 minutes of eight speech clips in four
 languages, a test person at 30 fps (AMD EPYC): the largest frame-to-frame step of the inner-lip gap at a
 block's edge 0.52 cm with no context (the whole file's 99th percentile of steps: 0.46 cm), 0.21 cm with 4 s
 (the whole file's there: 0.17 cm); 10 s changed nothing more."""

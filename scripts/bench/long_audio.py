@@ -2,6 +2,7 @@
 
     python -m scripts.bench.long_audio [AUDIO ...] [--person PERSON_DIR] [--minutes 6]
                                        [--block 120] [--contexts 0 2 5 10]
+    python -m scripts.bench.long_audio --footage CLIP ... [--cache /tmp/nvp-cache] [--block 3]
 
 The audio files (any format; default: nvp's synthetic voice) are mixed to 16 kHz mono and joined, one after
 the other and repeated, to ``--minutes``. Their expressions are predicted for the person (default: a bundle
@@ -13,6 +14,11 @@ the share of frames that differ by more than 0.05 cm, over all frames and over t
 block's edge, and the largest frame-to-frame step of the gap at an edge (the whole file's 99th percentile
 of steps is printed above). The first row is the yardstick: the whole-file prediction of the same audio
 with its last second cut, on the frames both have (the whole file's own dependence on its length).
+
+``--footage``: against real mouths instead. Each clip's person is fitted on the whole clip (tracking and
+features cached under ``--cache``; its style as ``nvp fit`` makes it), then its own audio is predicted as a
+whole and in blocks of ``--block`` seconds (short, so that clips of a few seconds have edges) with each
+``--contexts`` value; prints the correlation of each with the clip's tracked inner-lip gap.
 """
 
 from __future__ import annotations
@@ -69,6 +75,48 @@ def compare(gap: np.ndarray, ref: np.ndarray, edges: np.ndarray, fps: float) -> 
     return f"{figures(np.ones(len(d), bool))} | {figures(near)} | {steps.max():.3f}"
 
 
+def footage(clips: list[Path], cache: Path, block: float, contexts: list[float]) -> None:
+    """The ``--footage`` table (see the module docstring)."""
+    import dataclasses
+
+    from nvp.app.corpus import load_sample
+    from nvp.audio2exp import default_audio2exp
+    from nvp.face_model import default_face_model
+    from nvp.long_audio import BlockedExpressions
+    from nvp.media import read_audio
+    from nvp.opening import default_opening_model
+    from nvp.person import predict_expressions, style_from_sample, voiced_frames
+
+    net, manifest = default_audio2exp("phonemes")
+    opening, model = default_opening_model(), default_face_model()
+    print(f"blocks of {block:g} s; correlation of the inner-lip gap with the footage's (valid frames)\n")
+    print("| clip | frames | whole file | " + " | ".join(f"blocks, context {c:g} s" for c in contexts) + " |")
+    print("|---" * (3 + len(contexts)) + "|")
+    sums = np.zeros(1 + len(contexts))
+    for clip in clips:
+        s = load_sample(clip, cache, "phonemes", progress=False)
+        ow = load_sample(clip, cache, opening.feature_kind, progress=False).windows
+        seq = s.tracked
+        voiced = voiced_frames(clip, seq.fps, seq.num_frames)
+        sample = dataclasses.replace(s, opening_windows=ow)
+        style = style_from_sample(net, manifest, sample, model, voiced=voiced, opening=opening)
+        audio, n = read_audio(clip, 16000), seq.num_frames
+        ways = [predict_expressions(audio, 16000, seq.fps, style, net, num_frames=n)]
+        for context in contexts:
+            stream = BlockedExpressions(style, net, seq.fps, block_s=block, context_s=context)
+            for at in range(0, len(audio), 4096):
+                stream.push(audio[at : at + 4096])
+            ways.append(stream.finish(n))
+        real = model.inner_lip_gap(seq.identity, seq.expression)[seq.valid]
+        corr = [np.corrcoef(model.inner_lip_gap(seq.identity, e)[seq.valid], real)[0, 1] for e in ways]
+        sums += corr
+        print(
+            f"| {clip.name} | {int(seq.valid.sum())} | " + " | ".join(f"{c:.3f}" for c in corr) + " |",
+            flush=True,
+        )
+    print(f"| mean of {len(clips)} | | " + " | ".join(f"{c:.3f}" for c in sums / len(clips)) + " |")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("audio", type=Path, nargs="*")
@@ -76,14 +124,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--minutes", type=float, default=6.0)
     ap.add_argument("--block", type=float, default=None, help="seconds (default nvp.long_audio.BLOCK_S)")
     ap.add_argument("--contexts", type=float, nargs="+", default=None, help="seconds (default CONTEXT_S)")
+    ap.add_argument("--footage", type=Path, nargs="+", help="clips of real footage (see the docstring)")
+    ap.add_argument("--cache", type=Path, default=Path("/tmp/nvp-cache"))
     args = ap.parse_args(argv)
     from nvp.app.dub import load_person
     from nvp.bundle import PersonBundle
     from nvp.long_audio import BLOCK_S, CONTEXT_S, BlockedExpressions
     from nvp.person import predict_expressions
 
-    block = BLOCK_S if args.block is None else args.block
     contexts = [CONTEXT_S] if args.contexts is None else args.contexts
+    if args.footage:
+        print(f"# bench_long_audio --footage ({cpu_name()}, {os.cpu_count()} CPUs)")
+        footage(args.footage, args.cache, 3.0 if args.block is None else args.block, contexts)
+        return 0
+    block = BLOCK_S if args.block is None else args.block
     audio = joined_audio(args.audio, args.minutes)
     print(f"# bench_long_audio ({cpu_name()}, {os.cpu_count()} CPUs, load {os.getloadavg()[0]:.2f})")
     source = f"{len(args.audio)} file(s)" if args.audio else "synthetic voice"
