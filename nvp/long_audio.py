@@ -9,7 +9,7 @@ first half of the context after a block is faded linearly into the next block's 
 features' chunks are cross-faded), so the mouth does not jump at a block's edge; the rest of the context's
 frames are dropped. Only a block and its context are ever held.
 
-Audio no longer than ``BLOCK_S + CONTEXT_S`` is one block: exactly :func:`predict_expressions` of all of it.
+Audio shorter than ``BLOCK_S + CONTEXT_S`` is one block: exactly :func:`predict_expressions` of all of it.
 Longer audio differs from that only near the blocks' edges, as whole-file prediction itself differs with
 the audio's length (the features are made in 28 s chunks cross-faded over 4 s, planned over the length
 read, :mod:`nvp.audio_features`; the voice-activity detector's state starts where its audio starts); what
