@@ -152,7 +152,6 @@ def dub(
     what the audio says, whose p, b and m then close the lips (:mod:`nvp.transcript`); ``gaze``: where the
     eyes look, ``"footage"`` (where they look in the footage), ``"camera"`` (into the lens) or a gaze file
     (:mod:`nvp.gaze`, angles in the face's frame), the footage's eyes turned (:mod:`renderer.eyes`)."""
-    from nvp.allocator import release_freed_memory
     from nvp.artifact import check_output_file
     from nvp.media import frames_at
     from nvp.provenance import synthetic_mark
@@ -167,8 +166,8 @@ def dub(
     bundle = PersonBundle.load(bundle_dir)
     person = load_person(bundle, style)
     seq, model = person.tracked, person.model
+    # each block's temporaries are given back as it is made (nvp.long_audio): none kept for the rendering
     expression, duration = speech_expressions(audio_path, person, transcript, progress)
-    release_freed_memory()  # the features' temporaries are not kept for the rendering
     n_out = len(expression)
     looks = eye_requests(gaze, seq, n_out)
     order = target_frame_indices(n_out, seq.num_frames)
