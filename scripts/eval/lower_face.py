@@ -156,6 +156,7 @@ def evaluate(
     trained = rdir / "renderer_eval.json"  # eval_renderer's full-frame and face-crop numbers
     if not trained.exists():
         from scripts.eval.renderer import evaluate as train_and_eval
+        from scripts.eval.renderer import train_options
 
         numbers = train_and_eval(
             video,
@@ -169,6 +170,7 @@ def evaluate(
             source_gap_s=args.source_gap,
             adversarial_weight=args.adversarial_weight,
             init=args.init,
+            train_options=train_options(args.train),
         )
         trained.write_text(json.dumps(numbers, indent=2) + "\n")
     whole = json.loads(trained.read_text())

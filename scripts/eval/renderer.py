@@ -39,6 +39,7 @@ def evaluate(
     source_gap_s: tuple[float, float] | None = None,
     adversarial_weight: float = 0.0,
     init: str = "generic",
+    train_options: dict | None = None,
 ) -> dict:
     from nvp.app.corpus import tracked_cached
     from nvp.app.fit import renderer_init
@@ -76,6 +77,7 @@ def evaluate(
         adversarial_weight=adversarial_weight,
         init=renderer_init(init),
         **({"source_gap_s": tuple(source_gap_s)} if source_gap_s else {}),
+        **(train_options or {}),
     )
     train_renderer(cache, cfg, out, preset=chosen)
     manifest = json.loads((out / "renderer.json").read_text())
@@ -149,10 +151,36 @@ def add_variant_arguments(ap: argparse.ArgumentParser) -> None:
         "--adversarial-weight", type=float, default=0.0, help="weight of the patch-adversarial loss"
     )
     ap.add_argument(
+        "--train",
+        nargs="+",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="other RendererTrainConfig fields (numbers), e.g. lr=2e-3 lr_final=0.1",
+    )
+    ap.add_argument(
         "--init",
         default="generic",
         help="start of the training: generic (the shipped pre-trained renderer), scratch, or a folder",
     )
+
+
+def train_options(pairs: list[str]) -> dict:
+    """``--train FIELD=VALUE ...`` as RendererTrainConfig keyword arguments (a bad one: one clear error)."""
+    from dataclasses import fields
+
+    from renderer.train import RendererTrainConfig
+
+    known = {f.name for f in fields(RendererTrainConfig)}
+    out = {}
+    for pair in pairs:
+        key, _, value = pair.partition("=")
+        try:
+            out[key] = int(value) if value.lstrip("-").isdigit() else float(value)
+        except ValueError:
+            key = ""
+        if key not in known:
+            raise SystemExit(f"--train {pair}: expected FIELD=NUMBER with FIELD one of {sorted(known)}")
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -182,6 +210,7 @@ def main(argv: list[str] | None = None) -> int:
             args.source_gap,
             args.adversarial_weight,
             args.init,
+            train_options(args.train),
         )
         for v in args.videos
     ]
