@@ -156,7 +156,6 @@ def evaluate(
     trained = rdir / "renderer_eval.json"  # eval_renderer's full-frame and face-crop numbers
     if not trained.exists():
         from scripts.eval.renderer import evaluate as train_and_eval
-        from scripts.eval.renderer import train_options
 
         numbers = train_and_eval(
             video,
@@ -170,7 +169,7 @@ def evaluate(
             source_gap_s=args.source_gap,
             adversarial_weight=args.adversarial_weight,
             init=args.init,
-            train_options=train_options(args.train),
+            train_options=args.train,
         )
         trained.write_text(json.dumps(numbers, indent=2) + "\n")
     whole = json.loads(trained.read_text())
@@ -323,6 +322,9 @@ def main(argv: list[str] | None = None) -> int:
 
     add_variant_arguments(ap)
     args = ap.parse_args(argv)
+    from scripts.eval.renderer import train_options
+
+    args.train = train_options(args.train)  # a bad one refused before any video is tracked
     if data_missing(SHARED):
         return 0
     results = [

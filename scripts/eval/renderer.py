@@ -69,16 +69,16 @@ def evaluate(
     except FormatError:  # missing, damaged or made from other settings
         cache = build_cache(video, seq, model, chosen, np.arange(split))
         cache.save(cp, source)
-    cfg = RendererTrainConfig(
-        preset=preset,
-        steps=steps,
-        budget_s=None if steps else budget_min * 60,
-        detail_weight=detail_weight,
-        adversarial_weight=adversarial_weight,
-        init=renderer_init(init),
+    settings = {
+        "preset": preset,
+        "steps": steps,
+        "budget_s": None if steps else budget_min * 60,
+        "detail_weight": detail_weight,
+        "adversarial_weight": adversarial_weight,
+        "init": renderer_init(init),
         **({"source_gap_s": tuple(source_gap_s)} if source_gap_s else {}),
-        **(train_options or {}),
-    )
+    }
+    cfg = RendererTrainConfig(**settings | (train_options or {}))  # --train's fields over the others
     train_renderer(cache, cfg, out, preset=chosen)
     manifest = json.loads((out / "renderer.json").read_text())
     test = np.arange(split, seq.num_frames)
@@ -175,11 +175,12 @@ def train_options(pairs: list[str]) -> dict:
     for pair in pairs:
         key, _, value = pair.partition("=")
         try:
-            out[key] = int(value) if value.lstrip("-").isdigit() else float(value)
+            number = float(value)
         except ValueError:
-            key = ""
-        if key not in known:
+            number = None
+        if key not in known or number is None:
             raise SystemExit(f"--train {pair}: expected FIELD=NUMBER with FIELD one of {sorted(known)}")
+        out[key] = int(number) if value.lstrip("-").isdigit() else number
     return out
 
 
