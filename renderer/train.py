@@ -34,6 +34,7 @@ from renderer.networks import (
     same_structure,
     save_renderer,
 )
+from renderer.plateau import PlateauSchedule, held_out_rows, plateaued
 from renderer.preset import Preset, get_preset
 from renderer.train_data import FrameCache
 
@@ -90,6 +91,17 @@ class RendererTrainConfig:
     """Steps between preview PNGs (ground truth | interior | final)."""
     seed: int = 0
     """Random seed (initial weights, batches)."""
+    stop_on_plateau: bool = False
+    """End the run when the networks stop improving (:mod:`renderer.plateau`): the learning rate stays at
+    ``lr`` while the face's L1 on ``plateau_frames`` held-out frames is measured at every checkpoint; when its
+    best over the last ``plateau_window`` steps is less than ``plateau_gain`` below its best before them, or
+    when the steps or the time budget would run out, the rate falls along a half cosine to ``lr · lr_final``
+    over ``decay_fraction`` of the steps trained so far, and the run ends. False: one half cosine over the
+    whole run."""
+    plateau_window: int = 1000
+    plateau_gain: float = 0.01
+    plateau_frames: int = 16
+    decay_fraction: float = 0.25
     init: str | None = "generic"
     """Starting weights: ``"generic"`` = the renderer pre-trained on many people that ships for the preset
     (:func:`renderer.networks.generic_renderer_dir`; from scratch when the preset has none), None = from
@@ -143,6 +155,31 @@ def learning_rate(cfg: RendererTrainConfig, progress: float) -> float:
     """Cosine-decayed learning rate at ``progress`` (0 = start, 1 = end of training)."""
     p = min(max(progress, 0.0), 1.0)
     return float(cfg.lr * (cfg.lr_final + (1 - cfg.lr_final) * 0.5 * (1 + np.cos(np.pi * p))))
+
+
+def held_out_loss(
+    net: NeuralRenderer,
+    cache: FrameCache,
+    rows: np.ndarray,
+    texture: nn.Module,
+    sources: SourceSampler | None,
+    seed: int,
+    device: str,
+) -> float:
+    """The face's L1 (inside the mesh) of ``net``'s render of cache ``rows``, with their own blanked region
+    and, for a source-input preset, sources drawn the same way at every call."""
+    net.eval()
+    total = 0.0
+    with torch.no_grad():
+        for part in np.array_split(rows, -(-len(rows) // 8)):
+            target, geo = cache.batch(part, device)
+            source = sources(cache, part, np.random.default_rng([seed, 1])).to(device) if sources else None
+            _, final = net(
+                geo.uv, geo.mask, geo.mouth, blank_face(target, geo.region), geo.region, source, texture
+            )
+            total += float(l1_masked(final, target, geo.mask)) * len(part)
+    net.train()
+    return total / len(rows)
 
 
 def mix_regions(
@@ -269,6 +306,11 @@ def train_renderer(
     world, main = (group.world, group.main) if group is not None else (1, True)
     if world > 1 and cfg.adversarial_weight > 0:
         raise ValueError("the adversarial term trains on one process only")
+    if cfg.stop_on_plateau and len(caches) > 1:
+        raise ValueError("a training on several videos cannot stop on a plateau (it has no one person)")
+    schedule = PlateauSchedule(cfg.decay_fraction, cfg.lr_final) if cfg.stop_on_plateau else None
+    held_out = held_out_rows(len(caches[0].frames), cfg.plateau_frames) if schedule else np.zeros(0, int)
+    drawn = np.setdiff1d(np.arange(len(caches[0].frames)), held_out)  # the rows a single video's steps draw
     out_dir.mkdir(parents=True, exist_ok=True)
     sources = SourceSampler(preset, cfg.source_gap_s) if preset.source_input else None
     torch.manual_seed(cfg.seed)
@@ -288,6 +330,8 @@ def train_renderer(
                 textures.load_state_dict(state["textures"])
             opt.load_state_dict(state["opt"])
             step, elapsed, log_rows = int(state["step"]), float(state["elapsed"]), json.loads(state["log"])
+            if schedule is not None:
+                schedule = PlateauSchedule.from_state(state["schedule"])
         except (RuntimeError, KeyError, ValueError, TypeError, AttributeError) as e:
             raise FormatError(
                 f"{ckpt} was written by another nvp version, preset or set of videos and cannot be "
@@ -310,6 +354,7 @@ def train_renderer(
                     "step": step,
                     "elapsed": elapsed,
                     "log": json.dumps(log_rows),
+                    **({"schedule": schedule.state()} if schedule else {}),
                     **(
                         {"critic": critic.state_dict(), "critic_opt": critic_opt.state_dict()}
                         if critic
@@ -343,21 +388,42 @@ def train_renderer(
         bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} s, {remaining} left{postfix}" if timed else None,
         disable=not (progress and main),
     )
+
+    def judge_plateau(step: int, elapsed: float, steps: int) -> None:
+        """Measure the held-out loss and start the decay once it stops falling or the limit nears."""
+        if schedule.decay_from is not None:
+            return
+        if len(held_out):
+            loss = held_out_loss(net, caches[0], held_out, textures[0], sources, cfg.seed, device)
+            schedule.history.append((step, group.mean(loss) if world > 1 else loss))
+        if plateaued(schedule.history, cfg.plateau_window, cfg.plateau_gain):
+            schedule.start_decay(step, elapsed, "plateau", steps - step)
+        elif schedule.must_decay(step, elapsed, steps, cfg.budget_s):
+            schedule.start_decay(step, elapsed, "limit", steps - step)
+
     running: list[float] = []
     saved_at = elapsed  # training seconds at the last checkpoint
     t_last = time.perf_counter()
     governor = ThreadGovernor() if str(device) == "cpu" else None  # threads follow the free cores
-    while step < steps and (cfg.budget_s is None or elapsed < cfg.budget_s):
+    last = schedule.end(steps) if schedule else steps  # where the run ends (moves when a decay starts)
+    while step < last and (cfg.budget_s is None or elapsed < cfg.budget_s):
         if governor is not None:
             governor.update()
         net.train()
-        progress = step / steps if cfg.budget_s is None else max(step / steps, elapsed / cfg.budget_s)
+        if schedule is not None:
+            rate = cfg.lr * schedule.rate(step, elapsed, cfg.budget_s)
+        else:
+            progress = step / steps if cfg.budget_s is None else max(step / steps, elapsed / cfg.budget_s)
+            rate = learning_rate(cfg, progress)
         for params in opt.param_groups:
-            params["lr"] = learning_rate(cfg, progress)
+            params["lr"] = rate
         rng = np.random.default_rng([cfg.seed, step])
         person = int(rng.integers(len(caches))) if len(caches) > 1 else 0
         cache = caches[person]
-        idx = rng.integers(0, len(cache.frames), preset.batch)
+        if schedule is not None:
+            idx = drawn[rng.integers(0, len(drawn), preset.batch)]
+        else:
+            idx = rng.integers(0, len(cache.frames), preset.batch)
         target, geo = cache.batch(idx, device)
         region = mix_regions(geo.region, cache, rng, cfg.region_mix)
         source = sources(cache, idx, rng).to(device) if sources is not None else None
@@ -389,17 +455,24 @@ def train_renderer(
         if world > 1:  # the processes agree on the time (when to stop) and report the whole batch's loss
             elapsed, value = group.mean(elapsed), group.mean(value)
         running.append(value)
+        if schedule is not None and step % cfg.checkpoint_every == 0:
+            judge_plateau(step, elapsed, steps)
+            last = schedule.end(steps)
         if timed:  # the bar counts seconds up to the end the steps or the budget set, whichever comes first
-            bar.total = round(min(cfg.budget_s, elapsed * steps / step))
+            bar.total = round(min(cfg.budget_s, elapsed * last / step))
             bar.update(min(elapsed, bar.total) - bar.n)
         else:
+            bar.total = last
             bar.update(1)
         if step % 50 == 0:
             bar.set_postfix(step=step, loss=f"{np.mean(running[-50:]):.4f}")
         if main and (step % cfg.preview_every == 0 or step == FIRST_PREVIEW):
             _preview(out_dir / f"preview_{step:06d}.png", target, interior, final)
-        if step % cfg.checkpoint_every == 0 or step == steps:
-            log_rows.append({"step": step, "loss": float(np.mean(running)), "seconds": round(elapsed, 1)})
+        if step % cfg.checkpoint_every == 0 or step == last:
+            row = {"step": step, "loss": float(np.mean(running)), "seconds": round(elapsed, 1)}
+            if schedule is not None and schedule.history and schedule.history[-1][0] == step:
+                row["held_out"] = round(schedule.history[-1][1], 6)
+            log_rows.append(row)
             running = []
             save_checkpoint()
             saved_at = elapsed
@@ -420,6 +493,11 @@ def train_renderer(
         "train_seconds": round(elapsed, 1),
         "train_frames": int(sum(len(c.frames) for c in caches)),
         "init": start,
+        **(
+            {"decay": {"from": schedule.decay_from, "steps": schedule.decay_steps, "why": schedule.reason}}
+            if schedule
+            else {}
+        ),
         "processes": world,
         **({"videos": list(names)} if names is not None else {}),
         "parameters": count_parameters(net),

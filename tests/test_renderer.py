@@ -414,6 +414,83 @@ def test_learning_rate_falls_from_lr_to_its_final_fraction():
     assert all(a >= b for a, b in zip(lrs[:-1], lrs[1:], strict=True)) and type(lrs[0]) is float
 
 
+def test_a_plateau_is_the_best_of_the_last_window_barely_below_the_best_before_it():
+    from renderer.plateau import held_out_rows, plateaued
+
+    falling = [(s, 1.0 - 0.02 * s / 250) for s in range(250, 3001, 250)]  # 2 % every 250 steps
+    assert not plateaued(falling, 1000, 0.01)
+    assert plateaued(falling, 1000, 0.1)  # 8 % in the last 1000 steps is under a 10 % bar
+    flat = [(s, 0.5 + 0.01 * (-1) ** (s // 250)) for s in range(250, 2001, 250)]  # noise around a level
+    assert plateaued(flat, 1000, 0.01)
+    assert not plateaued(flat[:4], 1000, 0.01)  # nothing older than the window yet
+    assert not plateaued([], 1000, 0.01)
+    # one in eight at most, spread over the whole footage; none from fewer than eight frames
+    assert held_out_rows(1500, 16).tolist() == np.linspace(0, 1499, 16).round().astype(int).tolist()
+    assert held_out_rows(40, 16).tolist() == [0, 10, 20, 29, 39] and len(held_out_rows(7, 16)) == 0
+
+
+def test_a_plateau_schedule_holds_its_rate_then_falls_to_its_floor_in_its_steps_or_time():
+    from renderer.plateau import PlateauSchedule
+
+    s = PlateauSchedule(decay_fraction=0.25, floor=0.05)
+    assert s.rate(5000, 1e6, None) == 1.0 and s.end(8000) == 8000
+    assert not s.must_decay(6399, 0.0, 8000, None) and s.must_decay(6400, 0.0, 8000, None)
+    assert s.must_decay(10, 720.0, 8000, 900.0)  # 80 % of a 15-minute budget
+    s.start_decay(2000, 300.0, "plateau", steps_left=6000)
+    assert (s.decay_from, s.decay_steps, s.end(8000)) == (2000, 500, 2500)
+    rates = [s.rate(k, 300.0, 900.0) for k in range(2000, 2501, 50)]
+    assert rates[0] == 1.0 and rates[5] == pytest.approx(0.525) and rates[-1] == pytest.approx(0.05)
+    assert all(a > b for a, b in zip(rates[:-1], rates[1:], strict=True))
+    assert s.rate(2100, 900.0, 900.0) == pytest.approx(0.05)  # the time budget ends the decay first
+    s.start_decay(7000, 0.0, "limit", steps_left=1000)
+    assert s.decay_steps == 1000  # the run's own limit is nearer than a quarter of 7000
+    assert PlateauSchedule.from_state(s.state()) == s
+
+
+def test_a_training_that_stops_on_a_plateau_decays_ends_and_resumes_exactly(
+    footage, face_model, tmp_path, monkeypatch
+):
+    import renderer.train
+
+    path, seq = footage
+    cache = build_cache(path, seq, face_model, TINY, np.arange(10), progress=False)
+    # a bar of 100 %: the first judgement with a window behind it is a plateau (step 12), and a quarter of
+    # 12 steps of decay follow
+    cfg = RendererTrainConfig(
+        steps=40,
+        checkpoint_every=4,
+        preview_every=10**6,
+        stop_on_plateau=True,
+        plateau_window=8,
+        plateau_gain=1.0,
+    )
+    full = train_renderer(cache, cfg, tmp_path / "a", progress=False, preset=TINY)
+    assert full["steps"] == 15 and full["decay"] == {"from": 12, "steps": 3, "why": "plateau"}
+    assert [r.get("held_out") is not None for r in full["log"]] == [True, True, True, False]
+    # interrupted inside the decay (after the checkpoint at step 12), resumed: the same weights
+    real_preview = renderer.train._preview
+
+    def interrupt(path, *args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(renderer.train, "_preview", interrupt)
+    with pytest.raises(KeyboardInterrupt):
+        train_renderer(cache, replace(cfg, preview_every=14), tmp_path / "b", progress=False, preset=TINY)
+    monkeypatch.setattr(renderer.train, "_preview", real_preview)
+    resumed = train_renderer(cache, cfg, tmp_path / "b", progress=False, preset=TINY)
+    assert resumed["steps"] == 15 and resumed["decay"] == full["decay"]
+    a, _, _ = load_renderer(tmp_path / "a")
+    b, _, _ = load_renderer(tmp_path / "b")
+    for (k, va), vb in zip(a.state_dict().items(), b.state_dict().values(), strict=True):
+        torch.testing.assert_close(va, vb, msg=k)
+    # a loss that never levels off: the decay starts where the steps would otherwise run out (80 % of 20)
+    never = replace(cfg, steps=20, plateau_gain=-1.0)
+    info = train_renderer(cache, never, tmp_path / "c", progress=False, preset=TINY)
+    assert info["steps"] == 20 and info["decay"] == {"from": 16, "steps": 4, "why": "limit"}
+    with pytest.raises(ValueError, match="several videos"):
+        train_renderer([cache, cache], cfg, tmp_path / "d", progress=False, preset=TINY)
+
+
 def test_high_frequency_loss_sees_lost_detail_only_inside_the_mask():
     from kornia.filters import gaussian_blur2d
 
