@@ -36,26 +36,24 @@ def plateaued(history: list[tuple[int, float]], window: int, gain: float) -> boo
 
 @dataclass
 class PlateauSchedule:
-    """The learning rate of a plateau-ended run, as a multiple of ``lr``, and where the run ends.
+    """Where a plateau-ended run is on its learning rate's curve, and where the run ends.
 
     ``decay_from``: the step the decay started at (None: still at the constant rate); ``decay_steps``: its
     length; ``decay_t0``: training seconds at its start; ``history``: the held-out losses so far.
     """
 
     decay_fraction: float
-    floor: float
     decay_from: int | None = None
     decay_steps: int = 0
     decay_t0: float = 0.0
     reason: str = ""
     history: list[tuple[int, float]] = field(default_factory=list)
 
-    def start_decay(self, step: int, elapsed: float, reason: str, steps_left: int | None = None) -> None:
+    def start_decay(self, step: int, elapsed: float, reason: str, steps_left: int) -> None:
         """Begin the decay at ``step``: over ``decay_fraction`` of the steps trained so far, or over
         ``steps_left`` when the run's own limit is nearer."""
-        length = max(1, round(self.decay_fraction * step))
         self.decay_from, self.decay_t0, self.reason = step, elapsed, reason
-        self.decay_steps = length if steps_left is None else max(1, min(length, steps_left))
+        self.decay_steps = max(1, min(round(self.decay_fraction * step), steps_left))
 
     def must_decay(self, step: int, elapsed: float, steps: int, budget_s: float | None) -> bool:
         """Whether the run's limit is so near that the decay has to start now to fit in it."""
@@ -66,16 +64,15 @@ class PlateauSchedule:
         """The step the run ends at: ``steps`` until the decay starts."""
         return steps if self.decay_from is None else self.decay_from + self.decay_steps
 
-    def rate(self, step: int, elapsed: float, budget_s: float | None) -> float:
-        """The learning rate's multiple at ``step``: 1, then a half cosine down to ``floor`` by the decay's
-        last step or by the time budget, whichever comes first."""
+    def progress(self, step: int, elapsed: float, budget_s: float | None) -> float:
+        """Where ``step`` is on the learning rate's half cosine (``renderer.train.learning_rate``): 0 until
+        the decay starts, then up to 1 by the decay's last step or by the time budget, whichever is first."""
         if self.decay_from is None:
-            return 1.0
+            return 0.0
         p = (step - self.decay_from) / self.decay_steps
         if budget_s is not None and budget_s > self.decay_t0:
             p = max(p, (elapsed - self.decay_t0) / (budget_s - self.decay_t0))
-        p = min(max(p, 0.0), 1.0)
-        return float(self.floor + (1 - self.floor) * 0.5 * (1 + np.cos(np.pi * p)))
+        return p
 
     def state(self) -> dict:
         return asdict(self)

@@ -308,7 +308,7 @@ def train_renderer(
         raise ValueError("the adversarial term trains on one process only")
     if cfg.stop_on_plateau and len(caches) > 1:
         raise ValueError("a training on several videos cannot stop on a plateau (it has no one person)")
-    schedule = PlateauSchedule(cfg.decay_fraction, cfg.lr_final) if cfg.stop_on_plateau else None
+    schedule = PlateauSchedule(cfg.decay_fraction) if cfg.stop_on_plateau else None
     held_out = held_out_rows(len(caches[0].frames), cfg.plateau_frames) if schedule else np.zeros(0, int)
     drawn = np.setdiff1d(np.arange(len(caches[0].frames)), held_out)  # the rows a single video's steps draw
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -411,19 +411,16 @@ def train_renderer(
             governor.update()
         net.train()
         if schedule is not None:
-            rate = cfg.lr * schedule.rate(step, elapsed, cfg.budget_s)
+            progress = schedule.progress(step, elapsed, cfg.budget_s)
         else:
             progress = step / steps if cfg.budget_s is None else max(step / steps, elapsed / cfg.budget_s)
-            rate = learning_rate(cfg, progress)
         for params in opt.param_groups:
-            params["lr"] = rate
+            params["lr"] = learning_rate(cfg, progress)
         rng = np.random.default_rng([cfg.seed, step])
         person = int(rng.integers(len(caches))) if len(caches) > 1 else 0
         cache = caches[person]
-        if schedule is not None:
-            idx = drawn[rng.integers(0, len(drawn), preset.batch)]
-        else:
-            idx = rng.integers(0, len(cache.frames), preset.batch)
+        pool = drawn if schedule is not None else np.arange(len(cache.frames))  # (held-out rows left out)
+        idx = pool[rng.integers(0, len(pool), preset.batch)]
         target, geo = cache.batch(idx, device)
         region = mix_regions(geo.region, cache, rng, cfg.region_mix)
         source = sources(cache, idx, rng).to(device) if sources is not None else None

@@ -431,17 +431,23 @@ def test_a_plateau_is_the_best_of_the_last_window_barely_below_the_best_before_i
 
 def test_a_plateau_schedule_holds_its_rate_then_falls_to_its_floor_in_its_steps_or_time():
     from renderer.plateau import PlateauSchedule
+    from renderer.train import learning_rate
 
-    s = PlateauSchedule(decay_fraction=0.25, floor=0.05)
-    assert s.rate(5000, 1e6, None) == 1.0 and s.end(8000) == 8000
+    cfg = RendererTrainConfig(lr=1.0, lr_final=0.05)
+    s = PlateauSchedule(decay_fraction=0.25)
+
+    def rate(step, elapsed, budget):
+        return learning_rate(cfg, s.progress(step, elapsed, budget))
+
+    assert rate(5000, 1e6, None) == 1.0 and s.end(8000) == 8000
     assert not s.must_decay(6399, 0.0, 8000, None) and s.must_decay(6400, 0.0, 8000, None)
     assert s.must_decay(10, 720.0, 8000, 900.0)  # 80 % of a 15-minute budget
     s.start_decay(2000, 300.0, "plateau", steps_left=6000)
     assert (s.decay_from, s.decay_steps, s.end(8000)) == (2000, 500, 2500)
-    rates = [s.rate(k, 300.0, 900.0) for k in range(2000, 2501, 50)]
+    rates = [rate(k, 300.0, 900.0) for k in range(2000, 2501, 50)]
     assert rates[0] == 1.0 and rates[5] == pytest.approx(0.525) and rates[-1] == pytest.approx(0.05)
     assert all(a > b for a, b in zip(rates[:-1], rates[1:], strict=True))
-    assert s.rate(2100, 900.0, 900.0) == pytest.approx(0.05)  # the time budget ends the decay first
+    assert rate(2100, 900.0, 900.0) == pytest.approx(0.05)  # the time budget ends the decay first
     s.start_decay(7000, 0.0, "limit", steps_left=1000)
     assert s.decay_steps == 1000  # the run's own limit is nearer than a quarter of 7000
     assert PlateauSchedule.from_state(s.state()) == s
