@@ -145,6 +145,13 @@ def test_a_damaged_bundle_is_reported_not_crashed_on(fitted, tmp_path, member, d
     damage_file(p / member, damage)
     with pytest.raises(FormatError, match="damaged"):
         PersonBundle.load(p)
+
+
+def test_a_damaged_bundle_is_one_line_from_the_command_line(fitted, tmp_path):
+    """The real processes: one line, no traceback, no output (the in-process test below covers every file
+    and damage through the same error path)."""
+    p = copy_of(fitted, tmp_path)
+    damage_file(p / "renderer/renderer.npz", "truncate")
     assert_one_line_error(nvp("info", p), "damaged")
     wav = tmp_path / "s.wav"
     sf.write(wav, 0.3 * np.random.default_rng(0).standard_normal(16000).astype(np.float32), 16000)
