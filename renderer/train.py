@@ -34,7 +34,7 @@ from renderer.networks import (
     same_structure,
     save_renderer,
 )
-from renderer.plateau import PlateauSchedule, held_out_rows, plateaued
+from renderer.plateau import PlateauSchedule, held_out_blocks, plateaued
 from renderer.preset import Preset, get_preset
 from renderer.train_data import FrameCache
 
@@ -93,7 +93,8 @@ class RendererTrainConfig:
     """Random seed (initial weights, batches)."""
     stop_on_plateau: bool = False
     """End the run when the networks stop improving (:mod:`renderer.plateau`): the learning rate stays at
-    ``lr`` while the face's L1 on ``plateau_frames`` held-out frames is measured at every checkpoint; when its
+    ``lr`` while the face's L1 on ``plateau_frames`` held-out frames (in stretches of the footage the training
+    leaves out until the decay, ``plateau_reach``) is measured at every checkpoint; when its
     best over the last ``plateau_window`` steps is less than ``plateau_gain`` below its best before them, or
     when the steps or the time budget would run out, the rate falls along a half cosine to ``lr · lr_final``
     over ``decay_fraction`` of the steps trained so far, and the run ends. False: one half cosine over the
@@ -101,6 +102,9 @@ class RendererTrainConfig:
     plateau_window: int = 1000
     plateau_gain: float = 0.01
     plateau_frames: int = 16
+    plateau_reach: int = 20
+    """Frames (0.8 s at 25 fps) around each held-out frame that the training leaves out until the decay
+    (:func:`renderer.plateau.held_out_blocks`)."""
     decay_fraction: float = 0.25
     init: str | None = "generic"
     """Starting weights: ``"generic"`` = the renderer pre-trained on many people that ships for the preset
@@ -309,8 +313,12 @@ def train_renderer(
     if cfg.stop_on_plateau and len(caches) > 1:
         raise ValueError("a training on several videos cannot stop on a plateau (it has no one person)")
     schedule = PlateauSchedule(cfg.decay_fraction) if cfg.stop_on_plateau else None
-    held_out = held_out_rows(len(caches[0].frames), cfg.plateau_frames) if schedule else np.zeros(0, int)
-    drawn = np.setdiff1d(np.arange(len(caches[0].frames)), held_out)  # the rows a single video's steps draw
+    held_out, left_out = (
+        held_out_blocks(caches[0].frames, cfg.plateau_frames, reach=cfg.plateau_reach)
+        if schedule
+        else (None, None)
+    )
+    drawn = np.setdiff1d(np.arange(len(caches[0].frames)), left_out) if schedule else None  # until the decay
     out_dir.mkdir(parents=True, exist_ok=True)
     sources = SourceSampler(preset, cfg.source_gap_s) if preset.source_input else None
     torch.manual_seed(cfg.seed)
@@ -419,7 +427,8 @@ def train_renderer(
         rng = np.random.default_rng([cfg.seed, step])
         person = int(rng.integers(len(caches))) if len(caches) > 1 else 0
         cache = caches[person]
-        pool = drawn if schedule is not None else np.arange(len(cache.frames))  # (held-out rows left out)
+        # the held-out stretches are left out until the decay starts, then trained on like the rest
+        pool = drawn if schedule is not None and schedule.decay_from is None else np.arange(len(cache.frames))
         idx = pool[rng.integers(0, len(pool), preset.batch)]
         target, geo = cache.batch(idx, device)
         region = mix_regions(geo.region, cache, rng, cfg.region_mix)

@@ -415,7 +415,7 @@ def test_learning_rate_falls_from_lr_to_its_final_fraction():
 
 
 def test_a_plateau_is_the_best_of_the_last_window_barely_below_the_best_before_it():
-    from renderer.plateau import held_out_rows, plateaued
+    from renderer.plateau import held_out_blocks, plateaued
 
     falling = [(s, 1.0 - 0.02 * s / 250) for s in range(250, 3001, 250)]  # 2 % every 250 steps
     assert not plateaued(falling, 1000, 0.01)
@@ -424,9 +424,18 @@ def test_a_plateau_is_the_best_of_the_last_window_barely_below_the_best_before_i
     assert plateaued(flat, 1000, 0.01)
     assert not plateaued(flat[:4], 1000, 0.01)  # nothing older than the window yet
     assert not plateaued([], 1000, 0.01)
-    # one in eight at most, spread over the whole footage; none from fewer than eight frames
-    assert held_out_rows(1500, 16).tolist() == np.linspace(0, 1499, 16).round().astype(int).tolist()
-    assert held_out_rows(40, 16).tolist() == [0, 10, 20, 29, 39] and len(held_out_rows(7, 16)) == 0
+    # four stretches of 41 frames spread over a minute of footage, the measured frames at their middles, at
+    # least 18 frames (0.7 s) from any frame trained on; one row in eight at most (fewer stretches, or none)
+    measured, left_out = held_out_blocks(np.arange(1500), 16)
+    trained = np.setdiff1d(np.arange(1500), left_out)
+    assert len(measured) == 16 and len(left_out) == 4 * 41 and np.isin(measured, left_out).all()
+    assert np.abs(measured[:, None] - trained[None]).min() >= 18
+    assert np.diff(measured[::4]).min() > 300  # spread over the footage, not one stretch
+    measured, left_out = held_out_blocks(np.arange(0, 3000, 2), 16)  # every other frame cached
+    assert len(measured) == 16 and len(left_out) == 4 * 21
+    measured, left_out = held_out_blocks(np.arange(700), 16)
+    assert len(measured) == 16 and len(left_out) == 2 * 41
+    assert all(len(a) == 0 for a in held_out_blocks(np.arange(200), 16))
 
 
 def test_a_plateau_schedule_holds_its_rate_then_falls_to_its_floor_in_its_steps_or_time():
@@ -469,6 +478,7 @@ def test_a_training_that_stops_on_a_plateau_decays_ends_and_resumes_exactly(
         stop_on_plateau=True,
         plateau_window=8,
         plateau_gain=1.0,
+        plateau_reach=0,  # one frame of the ten is held out
     )
     full = train_renderer(cache, cfg, tmp_path / "a", progress=False, preset=TINY)
     assert full["steps"] == 15 and full["decay"] == {"from": 12, "steps": 3, "why": "plateau"}
