@@ -36,6 +36,10 @@ class Preset:
     """Longest default training on a CPU (``nvp fit`` without ``--steps`` or ``--budget-minutes`` stops after
     ``steps`` or this long, whichever comes first: a slower machine still ends); None: ``steps`` only (a GPU
     preset)."""
+    varied_minutes: float | None = None
+    """:attr:`minutes` for footage that shows the face in several lights (several takes or sessions:
+    :data:`renderer.train_data.VARIED_LIGHT_SHARE`), which the networks take longer to learn; None: the
+    same as :attr:`minutes`."""
     step_seconds: float | None = None
     """Rough seconds per training step on the 2-core CPU nvp is measured on (the time a fit expects, printed
     at its start; ``python -m scripts.bench.renderer``); None: not measured."""
@@ -56,7 +60,8 @@ PRESETS = {
         texture_size=256,
         steps=8000,
         batch=2,
-        minutes=15,
+        minutes=5,
+        varied_minutes=15,
         step_seconds=0.15,
     ),
     "quality": Preset(

@@ -129,16 +129,41 @@ def transient_light(
     them the networks paint the face in the footage's usual light and the render's light match
     (:func:`renderer.crop.colour_match`) puts it into the frame's (docs/experiments/renderer.md: *Fades
     left out of the renderer's training*)."""
-    off = np.zeros(len(frames), bool)
-    known = np.isfinite(light).all(1)
-    if not known.any():
-        return off
-    off[known] = light_ratio(light[known], np.median(light[known], axis=0)) > np.log1p(tolerance)
+    off = other_light(light, tolerance)
     edges = np.flatnonzero(np.diff(np.concatenate([[0], off.astype(np.int8), [0]])))
     for start, end in zip(edges[::2], edges[1::2], strict=True):
         if (frames[end - 1] - frames[start] + 1) / fps > longest_s:
             off[start:end] = False
     return off
+
+
+def other_light(light: np.ndarray, tolerance: float = LIGHT_TOLERANCE) -> np.ndarray:
+    """``(N,)`` bool: the crops (their :func:`face_light` ``light`` ``(N, 3)``) whose light differs from the
+    footage's median by more than ``tolerance`` in some channel (False where unknown)."""
+    off = np.zeros(len(light), bool)
+    known = np.isfinite(light).all(1)
+    if known.any():
+        off[known] = light_ratio(light[known], np.median(light[known], axis=0)) > np.log1p(tolerance)
+    return off
+
+
+VARIED_LIGHT_SHARE = 0.1
+"""Footage whose face is in another light (:func:`other_light`) in this share of its training frames or
+more was shot in several takes or sessions, and the renderer's default training is longer for it
+(:attr:`renderer.preset.Preset.varied_minutes`). Measured shares (after :func:`transient_light`): 0 on
+single shots (dfrf__cnn2, minimates__driving, multivsr hxn8, Trump_10s, edtalk pose_source2, cantolip
+icable), 0.22-0.72 on clips of one person joined (voxceleb2_id00100's ten: 0.26; Robert Downey Jr's two,
+LRS2's two, Fei-Fei Li's three, Obama's three). From 5 to 15 minutes of training the ten voxceleb clips'
+mouth box gains 0.6-0.8 dB, the single shots' −0.3 to +0.4 (docs/experiments/renderer.md: *A person in 5
+minutes: the default*)."""
+
+
+def varied_light(cache: FrameCache) -> float:
+    """Share of ``cache``'s frames whose face is in another light than the footage's usual one (other
+    takes: :data:`VARIED_LIGHT_SHARE`)."""
+    if not len(cache.frames):
+        return 0.0
+    return float(other_light(face_light(cache.crops, cache.mask, cache.mouth)).mean())
 
 
 def cache_frame_bytes(size: int, num_vertices: int) -> int:

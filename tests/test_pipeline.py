@@ -715,16 +715,19 @@ def test_a_fit_without_flags_ends_on_its_own_and_says_how_long_it_takes():
     from nvp.app.fit import FitConfig, expected_minutes, renderer_minutes, renderer_steps
     from renderer.preset import get_preset
 
-    assert renderer_minutes(FitConfig()) == 15  # the cpu preset's default time on a CPU ...
+    assert renderer_minutes(FitConfig()) == 5  # the cpu preset's default time on a CPU ...
+    assert renderer_minutes(FitConfig(), varied=True) == 15  # ... footage in several lights: longer ...
     assert renderer_steps(FitConfig()) == get_preset("cpu").steps  # ... or its steps, whichever ends first
     assert renderer_minutes(FitConfig(preset="quality")) == 45
     assert renderer_minutes(FitConfig(budget_minutes=7)) == 7
+    assert renderer_minutes(FitConfig(budget_minutes=7), varied=True) == 7  # the user's time decides
     assert renderer_steps(FitConfig(budget_minutes=7)) is None  # the time alone decides
     assert renderer_minutes(FitConfig(steps=100)) is None  # steps given: steps decide
     assert renderer_steps(FitConfig(steps=100, budget_minutes=7)) == 100  # both: whichever ends first
     assert renderer_minutes(FitConfig(device="cuda")) is None  # a GPU runs the preset's steps
     total, parts = expected_minutes(FitConfig(), 3000)  # 2 minutes of 25 fps footage
-    assert 16 < total < 20 and "renderer training 15 min" in parts  # the minutes end before 8,000 steps
+    assert 7 < total < 11  # the minutes end before 8,000 steps
+    assert "renderer training 5 min, 15 if the footage shows the face in several lights" in parts
     per_step = get_preset("cpu").step_seconds
     total, parts = expected_minutes(FitConfig(steps=3600), 3000)
     assert f"renderer training about {3600 * per_step / 60:.0f} min (3,600 steps)" in parts

@@ -285,6 +285,22 @@ def test_frames_in_a_passing_light_are_told_from_another_take():
     assert not transient_light(np.arange(3), np.full((3, 3), np.nan), 25.0).any()  # no face: nothing known
 
 
+def test_footage_in_several_lights_is_told_from_one_take(footage, face_model):
+    from renderer.train_data import VARIED_LIGHT_SHARE, varied_light
+
+    path, seq = footage
+    cache = build_cache(path, seq, face_model, TINY, np.arange(12), progress=False)
+    assert varied_light(cache) == 0.0  # one take
+    crops = cache.crops.astype(np.float32)
+    crops[8:] *= [1.0, 0.7, 1.3]  # the last third in a magenta light: another take
+    other = replace(cache, crops=np.clip(crops, 0, 255).astype(np.uint8))
+    assert varied_light(other) == pytest.approx(4 / 12)
+    assert varied_light(other) >= VARIED_LIGHT_SHARE
+    crops[8:] = cache.crops[8:] * 1.05  # a little brighter: the same light
+    assert varied_light(replace(cache, crops=crops.astype(np.uint8))) == 0.0
+    assert varied_light(replace(cache, frames=cache.frames[:0], crops=cache.crops[:0])) == 0.0
+
+
 def test_frames_of_a_fade_are_left_out_of_the_training_frames(footage, face_model, tmp_path):
     path, seq = footage
     faded = tmp_path / "faded.mp4"

@@ -307,15 +307,17 @@ TRACK_S_PER_FRAME = 0.03
 """Rough tracking time per frame on a 2-core CPU (for the estimate :func:`fit` prints at the start)."""
 
 
-def renderer_minutes(cfg: FitConfig) -> float | None:
+def renderer_minutes(cfg: FitConfig, varied: bool = False) -> float | None:
     """The renderer's training time limit: ``--budget-minutes``, else (on a CPU, without ``--steps``) the
-    preset's default time, so that a fit without flags ends on its own; None: steps only."""
+    preset's default time (longer for footage in several lights, ``varied``), so that a fit without flags
+    ends on its own; None: steps only."""
     from renderer.preset import get_preset
 
     if cfg.budget_minutes is not None:
         return cfg.budget_minutes
     if cfg.steps is None and not cfg.device.startswith("cuda"):
-        return get_preset(cfg.preset).minutes
+        preset = get_preset(cfg.preset)
+        return preset.varied_minutes if varied and preset.varied_minutes else preset.minutes
     return None
 
 
@@ -358,7 +360,9 @@ def expected_minutes(cfg: FitConfig, frames: int) -> tuple[float, str]:
         )
     if train is None:
         return track + register, f"{tracking}, then renderer training for {steps:,} steps"
-    return track + train + register + 1, f"{tracking}, renderer training {train:.0f} min"
+    varied = renderer_minutes(cfg, varied=True)
+    more = f", {varied:.0f} if the footage shows the face in several lights" if varied != train else ""
+    return track + train + register + 1, f"{tracking}, renderer training {train:.0f} min{more}"
 
 
 UNREGISTERED = "tracked_unregistered"
@@ -458,7 +462,7 @@ def _train_renderer(builder: BundleBuilder, cfg: FitConfig, progress: bool) -> d
     from nvp.face_model import default_face_model
     from renderer.preset import get_preset
     from renderer.train import RendererTrainConfig, train_renderer
-    from renderer.train_data import CACHE_BUDGET_MB, FrameCache, build_cache
+    from renderer.train_data import CACHE_BUDGET_MB, VARIED_LIGHT_SHARE, FrameCache, build_cache, varied_light
 
     preset = get_preset(cfg.preset)
     seq = TrackedSequence.load(builder.path("tracked"))
@@ -471,6 +475,19 @@ def _train_renderer(builder: BundleBuilder, cfg: FitConfig, progress: bool) -> d
         cache = build_cache(builder.path("target"), seq, model, preset, np.flatnonzero(seq.valid), progress)
         cache.save(frames_path, source)
     minutes = renderer_minutes(cfg)
+    if renderer_minutes(cfg, varied=True) != minutes:
+        share = varied_light(cache)
+        if share >= VARIED_LIGHT_SHARE:
+            longer = renderer_minutes(cfg, varied=True)
+            log.warning(
+                "%.0f %% of the footage shows the face in another light than the rest (other takes): the "
+                "renderer trains %.0f minutes instead of %.0f to learn every light (--budget-minutes sets "
+                "the time)",
+                100 * share,
+                longer,
+                minutes,
+            )
+            minutes = longer
     budget = None if minutes is None else minutes * 60
     tcfg = RendererTrainConfig(
         preset=cfg.preset,

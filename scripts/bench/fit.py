@@ -1,12 +1,13 @@
 """Benchmark ``nvp fit`` on long high-resolution footage: peak memory and the time of each stage.
 
-    python -m scripts.bench.fit [--seconds 180] [--source CLIP.mp4] [--steps 50]
+    python -m scripts.bench.fit [--seconds 180] [--source CLIP.mp4] [--steps 50 | --default-training]
 
 A ``--seconds`` video (default 3 minutes) is made by looping ``--source`` (default: the 1920×1080
 ``wav2lipgfpgan__kim_7s_raw.mp4`` of ../shared/data; video and audio packets copied, no re-encoding), and
 ``nvp fit`` runs on it in a fresh process with ``--steps`` renderer steps (the memory of training does not
-grow with steps; the frame cache it trains from grows with the video). Prints the peak resident memory of
-that process (target: ≤ 4 GB), its wall time and the bundle's per-stage seconds.
+grow with steps; the frame cache it trains from grows with the video), or with the preset's default
+training (``--default-training``: a fit without flags, as a new user runs it). Prints the CPU, the peak
+resident memory of that process (target: ≤ 4 GB), its wall time and the bundle's per-stage seconds.
 """
 
 from __future__ import annotations
@@ -14,7 +15,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import resource
 import subprocess
 import sys
@@ -30,19 +30,25 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=180.0)
     ap.add_argument("--source", type=Path, default=DATA / "wav2lipgfpgan__kim_7s_raw.mp4")
     ap.add_argument("--steps", type=int, default=50)
+    ap.add_argument("--default-training", action="store_true", help="no --steps: the preset's default time")
     ap.add_argument("--preset", default="cpu")
     args = ap.parse_args(argv)
     if not args.source.exists():
         print(f"{args.source} not found: nothing to measure")
         return 0
-    print(f"# bench_fit ({platform.machine()}, {os.cpu_count()} CPUs, load {os.getloadavg()[0]:.2f})")
+    from nvp.media import probe_video
+    from scripts.bench.dub import cpu_name
+
+    print(f"# bench_fit ({cpu_name()}, {os.cpu_count()} CPUs, load {os.getloadavg()[0]:.2f})")
     nvp = Path(sys.executable).parent / "nvp"
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         video = tmp / "long.mp4"
         loop_media(args.source, video, args.seconds)
+        seconds = probe_video(video).duration_s  # whole copies of the source: at least --seconds
         cmd = [str(nvp), "--quiet", "fit", str(video), "-o", str(tmp / "person")]
-        cmd += ["--steps", str(args.steps), "--preset", args.preset]
+        training = [] if args.default_training else ["--steps", str(args.steps)]
+        cmd += [*training, "--preset", args.preset]
         t0 = time.perf_counter()
         proc = subprocess.run(cmd, capture_output=True, text=True)
         wall = time.perf_counter() - t0
@@ -52,17 +58,17 @@ def main(argv: list[str] | None = None) -> int:
             return 1
         manifest = json.loads((tmp / "person" / "bundle.json").read_text())
     m = {
-        "seconds": args.seconds,
-        "steps": args.steps,
+        "seconds": round(seconds, 1),
+        "steps": None if args.default_training else args.steps,
         "preset": args.preset,
         "wall_s": wall,
         "peak_rss_mb": peak,
     }
     m["stages_s"] = {k: v.get("seconds") for k, v in manifest["stages"].items()}
-    print(
-        f"source {args.source.name} looped to {args.seconds:.0f} s; "
-        f"nvp fit --steps {args.steps} --preset {args.preset}"
-    )
+    m["renderer_steps"] = manifest["stages"]["renderer"].get("steps")
+    fit = " ".join(["nvp fit", *training, "--preset", args.preset])
+    print(f"source {args.source.name} looped to {seconds:.0f} s; {fit}")
+    print(f"renderer: {m['renderer_steps']} steps")
     print(f"wall {wall:.0f} s, peak RSS {peak:.0f} MB (target ≤ 4096 MB)")
     print("stages (s): " + ", ".join(f"{k} {v}" for k, v in m["stages_s"].items()))
     print("BENCH_JSON " + json.dumps(m))
