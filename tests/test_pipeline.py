@@ -172,6 +172,27 @@ def test_fit_resumes_after_an_interruption(demo_clip, tmp_path, monkeypatch):
         BundleBuilder(tmp_path / "q", {"preset": "quality"})
 
 
+def test_a_fit_trains_footage_in_several_lights_longer_and_says_so(demo_clip, tmp_path, monkeypatch, caplog):
+    import renderer.train
+    import renderer.train_data
+    from nvp.app import fit as pipeline
+
+    budgets = []
+
+    def training(cache, tcfg, *a, **k):  # note the time the fit gives the renderer, then stop
+        budgets.append(tcfg.budget_s)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(renderer.train, "train_renderer", training)
+    for share in (0.0, 0.3):
+        monkeypatch.setattr(renderer.train_data, "varied_light", lambda cache, share=share: share)
+        with pytest.raises(KeyboardInterrupt):
+            pipeline.fit(demo_clip.path, tmp_path / "p", pipeline.FitConfig(), progress=False)
+    assert budgets == [5 * 60, 15 * 60]  # one take: 5 minutes; a third in another light: 15
+    said = [r.getMessage() for r in caplog.records if "another light" in r.getMessage()]
+    assert len(said) == 1 and "30 % of the footage" in said[0] and "15 minutes instead of 5" in said[0]
+
+
 def test_an_interrupted_registration_starts_again_from_the_trackers_output(demo_clip, tmp_path, monkeypatch):
     import renderer.register
     from nvp.app import fit as pipeline

@@ -474,11 +474,10 @@ def _train_renderer(builder: BundleBuilder, cfg: FitConfig, progress: bool) -> d
         model = default_face_model()
         cache = build_cache(builder.path("target"), seq, model, preset, np.flatnonzero(seq.valid), progress)
         cache.save(frames_path, source)
-    minutes = renderer_minutes(cfg)
-    if renderer_minutes(cfg, varied=True) != minutes:
+    minutes, longer = renderer_minutes(cfg), renderer_minutes(cfg, varied=True)
+    if longer != minutes:
         share = varied_light(cache)
         if share >= VARIED_LIGHT_SHARE:
-            longer = renderer_minutes(cfg, varied=True)
             log.warning(
                 "%.0f %% of the footage shows the face in another light than the rest (other takes): the "
                 "renderer trains %.0f minutes instead of %.0f to learn every light (--budget-minutes sets "
