@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import platform
 import resource
@@ -38,7 +39,7 @@ def loop_media(src: Path, dst: Path, seconds: float, audio: bool = True) -> None
     with av.open(str(dst), "w") as out:
         outs: dict[str, object] = {}
         offsets: dict[str, int] = {}
-        for _ in range(int(seconds // clip) + 1):
+        for _ in range(max(1, math.ceil(seconds / clip - 1e-6))):  # whole copies, no more than needed
             with av.open(str(src)) as inp:
                 streams = [*inp.streams.video[:1], *(inp.streams.audio[:1] if audio else ())]
                 first: dict[str, int] = {}
