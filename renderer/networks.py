@@ -157,15 +157,7 @@ class NeuralRenderer(nn.Module):
         source: torch.Tensor | None = None,
         texture: NeuralTexture | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        feats = (texture or self.texture)(uv, mask)
-        if self.source_input:
-            if source is None:
-                raise ValueError("this renderer needs the moved source pixels (source_input)")
-            out = self.interior(torch.cat([feats, mask, mouth, source], 1))
-            w = out[:, 3:] * source[:, 3:]
-            interior = (w * source[:, :3] + (1 - w) * out[:, :3]) * mask
-        else:
-            interior = self.interior(torch.cat([feats, mask, mouth], 1)) * mask
+        interior = self.face(uv, mask, mouth, source, texture)
         extra = [region] if self.region_input else []
         out = self.composite(torch.cat([interior, background, mask, *extra], 1))
         # the second network paints the seam: the ring between the mesh and the untouched footage, as RGB
@@ -177,6 +169,25 @@ class NeuralRenderer(nn.Module):
         seam = alpha * out[:, :3] + (1 - alpha) * background
         keep = inner_weight(mask)
         return interior, keep * interior + (1 - keep) * seam
+
+    def face(
+        self,
+        uv: torch.Tensor,
+        mask: torch.Tensor,
+        mouth: torch.Tensor,
+        source: torch.Tensor | None = None,
+        texture: NeuralTexture | None = None,
+    ) -> torch.Tensor:
+        """The first network's render of the mesh alone, ``(B, 3, H, W)`` (0 off it; arguments as
+        :meth:`forward`): what the final image keeps as it is well inside the mesh (:func:`inner_weight`)."""
+        feats = (texture or self.texture)(uv, mask)
+        if not self.source_input:
+            return self.interior(torch.cat([feats, mask, mouth], 1)) * mask
+        if source is None:
+            raise ValueError("this renderer needs the moved source pixels (source_input)")
+        out = self.interior(torch.cat([feats, mask, mouth, source], 1))
+        w = out[:, 3:] * source[:, 3:]
+        return (w * source[:, :3] + (1 - w) * out[:, :3]) * mask
 
 
 def inner_weight(mask: torch.Tensor, erode: float = 0.015) -> torch.Tensor:

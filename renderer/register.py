@@ -6,12 +6,17 @@ tracked geometry and the frame itself: 0.3-0.6 frame pixels standard deviation, 
 dfrf__cnn2, edtalk__pose_source2, wav2lipgfpgan kim). Everything nvp paints and moves is placed by the
 tracking — the networks' render, the footage's detail moved onto a new mouth, the mouth bank's teeth — so
 that offset is an error in every painted pixel. Once the renderer is trained it is measured: dense optical
-flow (OpenCV DIS) between the footage crop and the networks' render of the frame's tracked geometry over
-the whole crop, its median over the face skin away from the lips (their shape is what a dub changes, and
-the mouth interior moves on its own); the head's translation is then moved so that its projection moves by
-that offset at the face's depth (:func:`registered`). On six videos (three test people), mouth-box PSNR
-+0.2-1.1 dB visually driven, up to +0.9 audio-driven and +0.4 in a dub, none on a 6-second clip whose
-renderer learned its frames by heart (docs/experiments/tracking.md, *Heads where the renderer sees them*).
+flow (OpenCV DIS) between the footage crop and the face network's render of the frame's tracked geometry
+(:meth:`renderer.render.FrameRenderer.surface`: the neural texture alone, without the compositing network,
+which paints the mesh's silhouette from the unmoved footage and so pulls the measure towards no offset:
+a known shift of a 600-step dfrf__cnn2 renderer's tracking by (1, -0.5) and (2, -1) frame pixels was
+measured back at 82-87 % of its length with the whole render, 101-103 % with the face network's alone, at
+23 instead of 39 ms a 512² frame), its median over the skin well inside the mesh away from the lips (their
+shape is what a dub changes, and the mouth interior moves on its own); the head's translation is then
+moved so that its projection moves by that offset at the face's depth (:func:`registered`). On six videos
+(three test people), mouth-box PSNR +0.2-1.1 dB visually driven, up to +0.9 audio-driven and +0.4 in a dub,
+none on a 6-second clip whose renderer learned its frames by heart (docs/experiments/tracking.md, *Heads where
+the renderer sees them*).
 """
 
 from __future__ import annotations
@@ -93,6 +98,7 @@ def registration_offsets(
 
     from nvp.face_model import default_face_model
     from nvp.media import frames_at
+    from renderer.networks import inner_weight
     from renderer.render import FrameRenderer
 
     model = default_face_model()
@@ -107,18 +113,18 @@ def registration_offsets(
             bar.update()
             if not seq.valid[t]:
                 continue
-            face = fr.prepare(frame, t, fr.tracked(t), whole=True)
-            if face.geo is None:
+            seen = fr.surface(frame, t, fr.tracked(t))
+            if seen is None:
                 continue
-            tri = face.geo.triangle_id.numpy()
+            crop, render, geo = seen
+            tri = geo.triangle_id.numpy()
             on_lips = ((tri >= 0) & lips[np.clip(tri, 0, None)]).astype(np.uint8)
-            region = ((face.geo.region[0, 0] > 0.5) & (face.geo.mask[0, 0] > 0.5)).numpy()
+            region = (inner_weight(geo.mask)[0, 0] > 0.99).numpy()  # where the final image is this render
             region &= cv2.dilate(on_lips, np.ones((grow, grow), np.uint8)) == 0
             crop, render = (
-                (x.permute(1, 2, 0).float().cpu() * 255).round().clamp(0, 255).byte().numpy()
-                for x in (face.crop, face.render)
+                (x.permute(1, 2, 0) * 255).round().clamp(0, 255).byte().numpy() for x in (crop, render)
             )
             # crop pixels to frame pixels: the box side over the crop side
-            out[j] = frame_offset(crop, render, region) * face.box[2] / fr.preset.crop
+            out[j] = frame_offset(crop, render, region) * fr.boxes[t][2] / fr.preset.crop
     bar.close()
     return out

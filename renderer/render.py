@@ -17,7 +17,7 @@ from nvp.face_model import FaceModel
 from nvp.tracked import TrackedSequence
 from renderer.band import DetailBand
 from renderer.crop import box_slices, colour_match, cut, feather, paste_region, region_weight
-from renderer.inputs import FaceRender, Rasterizer, blank_face, face_region, sequence_boxes
+from renderer.inputs import FaceRender, FrameGeometry, Rasterizer, blank_face, face_region, sequence_boxes
 from renderer.interior import MouthInteriors
 from renderer.masks import box_blur, dilate, erode
 from renderer.networks import fast_bf16, load_renderer
@@ -30,6 +30,11 @@ face."""
 WINDOW_MARGIN = 0.25
 """The networks run on the part of the crop around the painted lower face, grown by this fraction of the
 crop side (see :func:`network_window`): the upper face is never pasted, so it is not rendered either."""
+
+
+SURFACE_MARGIN = 16 / 192
+"""The first network's context around the mesh in :meth:`FrameRenderer.surface`, a fraction of the crop side
+(16 pixels of a 192² crop)."""
 
 
 class FrameRenderer(MouthInteriors, DetailBand):
@@ -131,11 +136,9 @@ class FrameRenderer(MouthInteriors, DetailBand):
         vertices_cam: np.ndarray,
         original_cam: np.ndarray | None = None,
         source: tuple[np.ndarray, int, np.ndarray] | None = None,
-        whole: bool = False,
     ) -> FaceRender:
         """The networks' render of ``vertices_cam`` over footage frame ``index`` and what the paste needs
-        (arguments as :meth:`render`), before a mouth-bank entry is chosen. ``whole``: the networks render
-        the whole crop, not only the part around the painted lower face (:func:`network_window`)."""
+        (arguments as :meth:`render`), before a mouth-bank entry is chosen."""
         # only the frame pixels under the crop box are read and written: they are taken out of the frame
         # (2 pixels more for the bilinear samples) and every pixel position below is relative to them
         # (box and principal point shifted alike, so the crop camera is the same)
@@ -168,8 +171,7 @@ class FrameRenderer(MouthInteriors, DetailBand):
         # painted part the footage keeps its full-resolution detail too (the crop is softer), while inside
         # it nothing of the footage's own mouth and chin shows through
         paint = face_region((lower > LOWER_FACE).float(), self.preset.region_grow) * region
-        margin = self.preset.crop if whole else self.window_margin
-        dev, (rows, cols) = self.device, network_window(paint, margin)
+        dev, (rows, cols) = self.device, network_window(paint, self.window_margin)
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.bf16):
             _, inside = self.net(
                 geo.uv[:, rows, cols].to(dev),
@@ -218,6 +220,42 @@ class FrameRenderer(MouthInteriors, DetailBand):
             lips,
             (gain, offset) if lit else None,
         )
+
+    @torch.inference_mode()
+    def surface(
+        self, frame: np.ndarray, index: int, vertices_cam: np.ndarray
+    ) -> tuple[torch.Tensor, torch.Tensor, FrameGeometry] | None:
+        """Footage frame ``index``'s crop ``(3, S, S)`` in [0, 1], the face network's render of
+        ``vertices_cam`` in it (``(3, S, S)``, 0 off the mesh; only the first network, on the mesh's bounding
+        box grown by :data:`SURFACE_MARGIN`, from the neural texture alone: the render the final image keeps
+        well inside the mesh) and the crop's geometry; None when the face is outside the frame. What
+        registration compares (:mod:`renderer.register`), at about half the networks' cost of
+        :meth:`prepare`."""
+        ys, xs = box_slices(self.boxes[index], *frame.shape[:2], grow=2)
+        if ys.stop <= ys.start or xs.stop <= xs.start:
+            return None
+        offset = np.array([xs.start, ys.start, 0.0])
+        box = self.boxes[index] - offset
+        geo = self.raster(vertices_cam, self.seq.focal, self.seq.center - offset[:2], box)
+        img = torch.from_numpy(frame[ys, xs]).permute(2, 0, 1).float()
+        crop = cut(img[None], torch.from_numpy(box[None]).float(), self.preset.crop) / 255
+        # a renderer taking the footage's moved pixels gets none (validity 0): this frame's own pixels moved
+        # onto its own tracked surface would copy the crop wherever the tracking puts the face
+        source = torch.zeros(1, 4, *crop.shape[-2:]) if self.net.source_input else None
+        dev, (rows, cols) = self.device, network_window(geo.mask, round(SURFACE_MARGIN * self.preset.crop))
+        face = torch.zeros_like(crop[0])
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.bf16):
+            face[:, rows, cols] = (
+                self.net.face(
+                    geo.uv[:, rows, cols].to(dev),
+                    geo.mask[..., rows, cols].to(dev),
+                    geo.mouth[..., rows, cols].to(dev),
+                    source[..., rows, cols].to(dev) if source is not None else None,
+                )[0]
+                .float()
+                .cpu()
+            )
+        return crop[0], face, geo
 
     @torch.inference_mode()
     def composite(
