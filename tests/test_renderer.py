@@ -649,7 +649,6 @@ def test_the_renderer_learns_loss_falls_and_a_held_out_frame_improves(footage, f
     assert error(tmp_path / "trained") < 0.7 * error(tmp_path / "untrained")
 
 
-
 def test_registration_measures_a_known_error_of_the_tracking(face_model, tmp_path):
     """Registration (renderer.register) finds where a trained renderer sees the face: tracking moved right
     and up off the footage is measured back left and down, by what it was moved. The face has a pattern
