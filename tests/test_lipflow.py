@@ -82,6 +82,11 @@ def test_detections_carry_the_lip_motion_and_the_fit_uses_it(tmp_path):
     assert np.isnan(det.lip_flow[-1, 0]).all() and np.isnan(det.lip_flow[0, 1]).all()  # no neighbour
     np.testing.assert_allclose(np.nanmedian(det.lip_flow[:-1, 0], (0, 1)), [1.0, 0.0], atol=0.2)
     np.testing.assert_allclose(np.nanmedian(det.lip_flow[1:, 1], (0, 1)), [-1.0, 0.0], atol=0.2)
+    # in segments of 3 frames, detected side by side (tracking.detect.MAX_WORKERS): the same landmarks (each
+    # segment's detector sees the frames before it first) and the same motion, across the joins too
+    parts = detect_video(path, progress=False, lips=lips, segment=3)
+    np.testing.assert_array_equal(parts.points, det.points)
+    np.testing.assert_array_equal(parts.lip_flow, det.lip_flow)
     det.save(tmp_path / "det.npz")
     back = Detections.load(tmp_path / "det.npz")
     np.testing.assert_array_equal(back.lip_flow, det.lip_flow)
