@@ -24,11 +24,15 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from nvp.face_model import FaceModel
 from nvp.tracked import TrackedSequence
+
+if TYPE_CHECKING:
+    from renderer.render import FrameRenderer
 
 LIP_MARGIN = 3 / 192
 """The lips and mouth interior, grown by this fraction of the crop side (3 pixels of a 192² crop), are left
@@ -93,38 +97,62 @@ def registration_offsets(
     """``(len(indices), 2)`` offsets (frame pixels, NaN where unmeasured or no face was tracked) of the
     renderer in ``renderer_dir``'s render of ``seq``'s frames ``indices`` of ``video``, for
     :func:`registered`."""
-    import cv2
+    from collections import deque
+    from functools import partial
+
     from tqdm import tqdm
 
     from nvp.face_model import default_face_model
     from nvp.media import frames_at
-    from renderer.networks import inner_weight
+    from nvp.threads import frame_workers
     from renderer.render import FrameRenderer
+    from renderer.workers import RenderWorkers
 
     model = default_face_model()
     lips = model.vertex_regions["lips"][model.triangles].any(1) | model.triangle_regions["mouth_interior"]
     indices = np.asarray(indices, dtype=np.int64)
     out = np.full((len(indices), 2), np.nan)
-    bar = tqdm(total=len(indices), desc="register", unit="frame", disable=not progress)
-    with FrameRenderer(renderer_dir, model, seq, device, detail=False, interiors=False) as fr:
-        grow = max(1, round(LIP_MARGIN * fr.preset.crop)) * 2 + 1
-        frames = frames_at(video, indices, seq.fps)
-        for j, (t, frame) in enumerate(zip(indices.tolist(), frames, strict=True)):
+    # frames side by side, one PyTorch thread each, as the dub renders them (renderer.loop.render_frames)
+    workers = frame_workers() if str(device).startswith("cpu") else 1
+    with (
+        FrameRenderer(renderer_dir, model, seq, device, detail=False, interiors=False) as fr,
+        RenderWorkers(fr, workers) as pool,
+        tqdm(total=len(indices), desc="register", unit="frame", disable=not progress) as bar,
+    ):
+        pending: deque = deque()  # (row of out, its future), fewer than `workers` left between frames
+
+        def collect(left: int) -> None:
+            while len(pending) > left:
+                row, future = pending.popleft()
+                out[row] = future.result()
+
+        for j, (t, frame) in enumerate(
+            zip(indices.tolist(), frames_at(video, indices, seq.fps), strict=True)
+        ):
+            if seq.valid[t]:
+                pending.append((j, pool.submit(partial(_offset, t=t, frame=frame, lips=lips))))
+            collect(workers - 1)
             bar.update()
-            if not seq.valid[t]:
-                continue
-            seen = fr.surface(frame, t, fr.tracked(t))
-            if seen is None:
-                continue
-            crop, render, geo = seen
-            tri = geo.triangle_id.numpy()
-            on_lips = ((tri >= 0) & lips[np.clip(tri, 0, None)]).astype(np.uint8)
-            region = (inner_weight(geo.mask)[0, 0] > 0.99).numpy()  # where the final image is this render
-            region &= cv2.dilate(on_lips, np.ones((grow, grow), np.uint8)) == 0
-            crop, render = (
-                (x.permute(1, 2, 0) * 255).round().clamp(0, 255).byte().numpy() for x in (crop, render)
-            )
-            # crop pixels to frame pixels: the box side over the crop side
-            out[j] = frame_offset(crop, render, region) * fr.boxes[t][2] / fr.preset.crop
-    bar.close()
+        collect(0)
     return out
+
+
+def _offset(fr: FrameRenderer, t: int, frame: np.ndarray, lips: np.ndarray) -> np.ndarray:
+    """``(2,)`` frame ``t``'s offset (frame pixels, NaN when unmeasured) by renderer ``fr``; ``lips``: the
+    face model's triangles left out with the margin :data:`LIP_MARGIN`."""
+    import cv2
+
+    from renderer.networks import inner_weight
+
+    seen = fr.surface(frame, t, fr.tracked(t))
+    if seen is None:
+        return np.full(2, np.nan)
+    crop, render, geo = seen
+    grow = max(1, round(LIP_MARGIN * fr.preset.crop)) * 2 + 1
+    tri = geo.triangle_id.numpy()
+    on_lips = ((tri >= 0) & lips[np.clip(tri, 0, None)]).astype(np.uint8)
+    region = (inner_weight(geo.mask)[0, 0] > 0.99).numpy()  # where the final image is this render
+    region &= cv2.dilate(on_lips, np.ones((grow, grow), np.uint8)) == 0
+    crop, render = ((x.permute(1, 2, 0) * 255).round().clamp(0, 255).byte().numpy() for x in (crop, render))
+    # crop pixels to frame pixels: the box side over the crop side
+    return frame_offset(crop, render, region) * fr.boxes[t][2] / fr.preset.crop

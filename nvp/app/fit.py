@@ -368,9 +368,10 @@ def expected_minutes(cfg: FitConfig, frames: int) -> tuple[float, str]:
 UNREGISTERED = "tracked_unregistered"
 """The tracker's own output, kept in the work folder while the registration stage rewrites ``tracked``."""
 
-REGISTER_S_PER_FRAME = 0.03
-"""Rough registration time per frame on a 2-core CPU (the face network on the mesh and an optical flow; AMD
-EPYC, idle: 23 ms at 512², 41 ms at 1080p, 25 ms a frame in a 5-minute fit of a 60 s 512² clip)."""
+REGISTER_S_PER_FRAME = 0.02
+"""Rough registration time per frame on a 2-core CPU (the face network on the mesh and an optical flow, two
+frames side by side; AMD EPYC, idle: 16 ms a frame in a 5-minute fit of a 60 s 512² clip, about 21 ms at
+1080p)."""
 
 
 def _register(builder: BundleBuilder, cfg: FitConfig, progress: bool) -> dict:
