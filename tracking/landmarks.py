@@ -11,6 +11,7 @@ import hashlib
 import importlib.resources
 import logging
 import os
+import threading
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -50,21 +51,37 @@ def read_task_member(name: str) -> bytes:
         return zf.read(name)
 
 
+_SILENCE_LOCK = threading.Lock()
+_silenced = {"depth": 0, "saved": None}
+"""How many threads are inside :func:`_native_stderr_silenced` and the real stderr's copy they share."""
+
+
 @contextlib.contextmanager
 def _native_stderr_silenced():
-    """Silence C++ log lines (glog/TFLite start-up chatter) written straight to file descriptor 2."""
+    """Silence C++ log lines (glog/TFLite start-up chatter) written straight to file descriptor 2. Threads
+    that detect side by side (:func:`tracking.detect.detect_video`) share one silence: the first in saves
+    the real stderr, the last out puts it back (each saving its own would let the second save the silence
+    and restore it last: stderr lost for the rest of the process)."""
+    with _SILENCE_LOCK:
+        if _silenced["depth"] == 0:
+            try:
+                _silenced["saved"] = os.dup(2)
+            except OSError:  # no real stderr (e.g. embedded interpreter): nothing to silence
+                _silenced["saved"] = None
+            if _silenced["saved"] is not None:
+                with open(os.devnull, "wb") as null:
+                    os.dup2(null.fileno(), 2)
+        _silenced["depth"] += 1
     try:
-        saved = os.dup(2)
-    except OSError:  # no real stderr (e.g. embedded interpreter): nothing to silence
         yield
-        return
-    with open(os.devnull, "wb") as null:
-        os.dup2(null.fileno(), 2)
-        try:
-            yield
-        finally:
-            os.dup2(saved, 2)
-            os.close(saved)
+    finally:
+        with _SILENCE_LOCK:
+            _silenced["depth"] -= 1
+            saved = _silenced["saved"]
+            if _silenced["depth"] == 0 and saved is not None:
+                os.dup2(saved, 2)
+                os.close(saved)
+                _silenced["saved"] = None
 
 
 @dataclass(frozen=True)
