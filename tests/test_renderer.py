@@ -660,7 +660,7 @@ def test_registration_measures_a_known_error_of_the_tracking(face_model, tmp_pat
     path = tmp_path / "face.mp4"
     waves = lambda uv: 0.5 + 0.4 * torch.sin(uv * 6 * np.pi)  # noqa: E731
     face_video(path, seq, face_model, lambda uv: torch.cat([uv[..., :1], waves(uv)], -1))
-    preset = Preset("reg", crop=48, base=8, dilated=False, texture_size=64, steps=2, batch=2)
+    preset = Preset("reg", crop=64, base=8, dilated=False, texture_size=64, steps=2, batch=2)
     cache = build_cache(path, seq, face_model, preset, np.arange(12), progress=False)
     cfg = RendererTrainConfig(steps=150, lr=3e-3, checkpoint_every=10**6, preview_every=10**6)
     train_renderer(cache, cfg, tmp_path / "r", progress=False, preset=preset)
@@ -669,7 +669,9 @@ def test_registration_measures_a_known_error_of_the_tracking(face_model, tmp_pat
     shift = np.array([0.4, -0.3])  # frame pixels, below the longest offset taken (MAX_SHIFT)
     moved = registered(seq, face_model, np.tile(shift, (12, 1)))
     back = registration_offsets(tmp_path / "r", path, moved, frames, progress=False)
-    change = np.median(back - exact, 0)  # measured: (-0.51, 0.30) at 150 and at 300 steps
+    # measured (AMD EPYC): (-0.45 ± 0.01, 0.39 ± 0.01) over training seeds 0-3 (a 48² crop: -0.50 ... -0.53
+    # in x, 0.23 ... 0.30 in y; DIS flow over so few pixels is biased either way)
+    change = np.median(back - exact, 0)
     np.testing.assert_allclose(change, -shift, atol=0.15)
 
 
