@@ -13,10 +13,11 @@ a known shift of a 600-step dfrf__cnn2 renderer's tracking by (1, -0.5) and (2, 
 measured back at 82-87 % of its length with the whole render, 101-103 % with the face network's alone, at
 23 instead of 39 ms a 512² frame), its median over the skin well inside the mesh away from the lips (their
 shape is what a dub changes, and the mouth interior moves on its own); the head's translation is then
-moved so that its projection moves by that offset at the face's depth (:func:`registered`). On six videos
-(three test people), mouth-box PSNR +0.2-1.1 dB visually driven, up to +0.9 audio-driven and +0.4 in a dub,
-none on a 6-second clip whose renderer learned its frames by heart (docs/experiments/tracking.md, *Heads where
-the renderer sees them*).
+moved so that its projection moves by that offset at the face's depth (:func:`registered`). Registering (with
+the earlier measure) gained, on six videos (three test people), mouth-box PSNR +0.2-1.1 dB visually driven, up
+to +0.9 audio-driven and +0.4 in a dub, none on a 6-second clip whose renderer learned its frames by heart
+(docs/experiments/tracking.md, *Heads where the renderer sees them*); the measure used now is within ±0.11 dB
+of it on three.
 """
 
 from __future__ import annotations
