@@ -6,6 +6,8 @@ crops live); frames in a passing light are left out (:func:`transient_light`).
 from __future__ import annotations
 
 import logging
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -16,6 +18,7 @@ from tqdm import tqdm
 from nvp.artifact import load_artifact, save_artifact
 from nvp.errors import FormatError
 from nvp.face_model import FaceModel
+from nvp.threads import frame_workers
 from nvp.tracked import TrackedSequence
 from renderer.crop import cut
 from renderer.inputs import FrameGeometry, Rasterizer, sequence_boxes
@@ -204,26 +207,49 @@ def build_cache(
         camera=np.array([seq.focal, *seq.center], np.float32),
     )
     row = {int(f): i for i, f in enumerate(frames)}
-    rast = Rasterizer(model, s, preset.region_grow)
     last = int(frames.max()) + 1 if n else 0
+
+    def fill(i: int, t: int, img: np.ndarray, rast: Rasterizer) -> None:  # row i of the cache: frame t
+        frame = torch.from_numpy(img).permute(2, 0, 1)[None]
+        crop = cut(frame, torch.from_numpy(boxes[t : t + 1]).float(), s)[0]
+        cache.crops[i] = crop.clamp(0, 255).round().byte().permute(1, 2, 0).numpy()
+        g = rast(cache.vertices[i], seq.focal, seq.center, boxes[t])
+        cache.uv[i] = g.uv[0].numpy().astype(np.float16)
+        cache.mask[i] = g.mask[0, 0].numpy() > 0.5
+        cache.mouth[i] = g.mouth[0, 0].numpy() > 0.5
+        cache.region[i] = g.region[0, 0].numpy() > 0.5
+
+    # frames side by side, one PyTorch thread and rasterizer each, while the next ones are decoded
+    workers = frame_workers()
+    idle = [Rasterizer(model, s, preset.region_grow) for _ in range(workers)]
+
+    def job(i: int, t: int, img: np.ndarray) -> None:
+        rast = idle.pop()  # list.pop/append are atomic; at most `workers` jobs run at once
+        try:
+            fill(i, t, img, rast)
+        finally:
+            idle.append(rast)
+
     try:
-        bar = tqdm(total=n, desc="prepare renderer frames", disable=not progress, unit="frame")
-        for t, img in enumerate(iter_frames(video, fps=seq.fps, max_frames=last)):
-            i = row.get(t)
-            if i is None:
-                continue
-            frame = torch.from_numpy(img).permute(2, 0, 1)[None]
-            crop = cut(frame, torch.from_numpy(boxes[t : t + 1]).float(), s)[0]
-            cache.crops[i] = crop.clamp(0, 255).round().byte().permute(1, 2, 0).numpy()
-            g = rast(cache.vertices[i], seq.focal, seq.center, boxes[t])
-            cache.uv[i] = g.uv[0].numpy().astype(np.float16)
-            cache.mask[i] = g.mask[0, 0].numpy() > 0.5
-            cache.mouth[i] = g.mouth[0, 0].numpy() > 0.5
-            cache.region[i] = g.region[0, 0].numpy() > 0.5
-            bar.update(1)
-        bar.close()
+        with (
+            ThreadPoolExecutor(workers, initializer=torch.set_num_threads, initargs=(1,)) as pool,
+            tqdm(total=n, desc="prepare renderer frames", disable=not progress, unit="frame") as bar,
+        ):
+            pending: deque = deque()
+
+            def collect(left: int) -> None:
+                while len(pending) > left:
+                    pending.popleft().result()
+                    bar.update(1)
+
+            for t, img in enumerate(iter_frames(video, fps=seq.fps, max_frames=last)):
+                if t in row:
+                    pending.append(pool.submit(job, row[t], t, img))
+                collect(workers - 1)
+            collect(0)
     finally:
-        rast.close()
+        for rast in idle:
+            rast.close()
     off = transient_light(frames, face_light(cache.crops, cache.mask, cache.mouth), seq.fps)
     if off.any():
         log.warning(
