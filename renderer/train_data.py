@@ -7,8 +7,9 @@ from __future__ import annotations
 
 import logging
 from collections import deque
-from concurrent.futures import ThreadPoolExecutor
+from contextlib import ExitStack
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +25,7 @@ from renderer.crop import cut
 from renderer.inputs import FrameGeometry, Rasterizer, sequence_boxes
 from renderer.mouths import LIGHT_TOLERANCE, light_ratio
 from renderer.preset import Preset
+from renderer.workers import Workers
 
 CACHE_FIELDS = ("frames", "crops", "uv", "mask", "mouth", "region", "boxes", "vertices", "camera")
 CACHE_VERSION = 4  # 2: camera-frame vertices and the camera, for moving one frame's pixels onto another;
@@ -220,36 +222,26 @@ def build_cache(
         cache.region[i] = g.region[0, 0].numpy() > 0.5
 
     # frames side by side, one PyTorch thread and rasterizer each, while the next ones are decoded
-    workers = frame_workers()
-    idle = [Rasterizer(model, s, preset.region_grow) for _ in range(workers)]
+    rasterizers, made = [], ExitStack()
+    for _ in range(frame_workers()):
+        rasterizers.append(Rasterizer(model, s, preset.region_grow))
+        made.callback(rasterizers[-1].close)
+    with (
+        Workers(rasterizers, made) as pool,
+        tqdm(total=n, desc="prepare renderer frames", disable=not progress, unit="frame") as bar,
+    ):
+        pending: deque = deque()
 
-    def job(i: int, t: int, img: np.ndarray) -> None:
-        rast = idle.pop()  # list.pop/append are atomic; at most `workers` jobs run at once
-        try:
-            fill(i, t, img, rast)
-        finally:
-            idle.append(rast)
+        def collect(left: int) -> None:
+            while len(pending) > left:
+                pending.popleft().result()
+                bar.update(1)
 
-    try:
-        with (
-            ThreadPoolExecutor(workers, initializer=torch.set_num_threads, initargs=(1,)) as pool,
-            tqdm(total=n, desc="prepare renderer frames", disable=not progress, unit="frame") as bar,
-        ):
-            pending: deque = deque()
-
-            def collect(left: int) -> None:
-                while len(pending) > left:
-                    pending.popleft().result()
-                    bar.update(1)
-
-            for t, img in enumerate(iter_frames(video, fps=seq.fps, max_frames=last)):
-                if t in row:
-                    pending.append(pool.submit(job, row[t], t, img))
-                collect(workers - 1)
-            collect(0)
-    finally:
-        for rast in idle:
-            rast.close()
+        for t, img in enumerate(iter_frames(video, fps=seq.fps, max_frames=last)):
+            if t in row:
+                pending.append(pool.submit(partial(fill, row[t], t, img)))
+            collect(len(rasterizers) - 1)
+        collect(0)
     off = transient_light(frames, face_light(cache.crops, cache.mask, cache.mouth), seq.fps)
     if off.any():
         log.warning(

@@ -1,52 +1,67 @@
-"""The worker pool of the render loop: renderers of one person, each on its own thread."""
+"""Worker pools of the render loop and the frame cache: one resource (a renderer, a rasterizer) per thread."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import ExitStack
-from typing import TypeVar
+from typing import TYPE_CHECKING, Generic, TypeVar
 
 import torch
 
-from renderer.render import FrameRenderer
+if TYPE_CHECKING:
+    from renderer.render import FrameRenderer
 
 T = TypeVar("T")
+R = TypeVar("R")
 
 
-class RenderWorkers:
-    """``workers`` renderers of one person (``fr`` and twins, :meth:`FrameRenderer.twin`), each on its own
-    thread with one PyTorch thread (see :func:`render_frames`), or ``fr`` alone in the calling thread when
-    ``workers`` is 1 (a profiler sees it; a GPU renders one frame at a time anyway). Use as a context
-    manager: leaving it stops the threads (what has not started is cancelled) and closes the twins."""
+class Workers(Generic[R]):
+    """``resources`` (objects one thread may use at a time: an OpenGL context is one), each job on a free
+    one, in as many threads as there are resources, each thread with one PyTorch thread; with a single
+    resource the jobs run in the calling thread (a profiler sees them). Use as a context manager: leaving
+    it stops the threads (what has not started is cancelled), then closes ``owned`` (the resources' own
+    closing, when the pool is to do it)."""
 
-    def __init__(self, fr: FrameRenderer, workers: int) -> None:
+    def __init__(self, resources: Sequence[R], owned: ExitStack | None = None) -> None:
         self._stack = ExitStack()
-        self._idle = [fr] + [self._stack.enter_context(fr.twin()) for _ in range(workers - 1)]
+        if owned is not None:  # what closes the resources: last, once the threads have stopped
+            self._stack.enter_context(owned)
+        self._idle = list(resources)
         self._pool = None
-        if workers > 1:
-            self._pool = ThreadPoolExecutor(workers, initializer=torch.set_num_threads, initargs=(1,))
+        if len(self._idle) > 1:
+            self._pool = ThreadPoolExecutor(len(self._idle), initializer=torch.set_num_threads, initargs=(1,))
             self._stack.enter_context(self._pool)
             self._stack.callback(self._pool.shutdown, cancel_futures=True)  # first: nothing new starts
 
-    def __enter__(self) -> RenderWorkers:
+    def __enter__(self) -> Workers[R]:
         return self
 
     def __exit__(self, *exc) -> None:
         self._stack.close()
 
-    def submit(self, job: Callable[[FrameRenderer], T]) -> Future[T]:
-        """``job(renderer)`` on a free renderer; its future."""
+    def submit(self, job: Callable[[R], T]) -> Future[T]:
+        """``job(resource)`` on a free resource; its future."""
 
         def run() -> T:
-            renderer = self._idle.pop()  # list.pop/append are atomic; at most `workers` jobs run at once
+            resource = self._idle.pop()  # list.pop/append are atomic; at most len(resources) jobs at once
             try:
-                return job(renderer)
+                return job(resource)
             finally:
-                self._idle.append(renderer)
+                self._idle.append(resource)
 
         if self._pool is not None:
             return self._pool.submit(run)
         done: Future = Future()
         done.set_result(run())
         return done
+
+
+class RenderWorkers(Workers["FrameRenderer"]):
+    """``workers`` renderers of one person (``fr`` and twins, :meth:`FrameRenderer.twin`) as :class:`Workers`
+    (see :func:`renderer.loop.render_frames`; a GPU renders one frame at a time anyway); leaving it also
+    closes the twins."""
+
+    def __init__(self, fr: FrameRenderer, workers: int) -> None:
+        twins = ExitStack()
+        super().__init__([fr] + [twins.enter_context(fr.twin()) for _ in range(workers - 1)], twins)
