@@ -98,7 +98,6 @@ def registration_offsets(
     """``(len(indices), 2)`` offsets (frame pixels, NaN where unmeasured or no face was tracked) of the
     renderer in ``renderer_dir``'s render of ``seq``'s frames ``indices`` of ``video``, for
     :func:`registered`."""
-    from collections import deque
     from functools import partial
 
     from tqdm import tqdm
@@ -120,21 +119,12 @@ def registration_offsets(
         RenderWorkers(fr, workers) as pool,
         tqdm(total=len(indices), desc="register", unit="frame", disable=not progress) as bar,
     ):
-        pending: deque = deque()  # (row of out, its future), fewer than `workers` left between frames
-
-        def collect(left: int) -> None:
-            while len(pending) > left:
-                row, future = pending.popleft()
-                out[row] = future.result()
-
-        for j, (t, frame) in enumerate(
-            zip(indices.tolist(), frames_at(video, indices, seq.fps), strict=True)
-        ):
-            if seq.valid[t]:
-                pending.append((j, pool.submit(partial(_offset, t=t, frame=frame, lips=lips))))
-            collect(workers - 1)
+        read = zip(indices.tolist(), frames_at(video, indices, seq.fps), strict=True)
+        jobs = (partial(_offset, t=t, frame=img, lips=lips) if seq.valid[t] else None for t, img in read)
+        for j, offset in enumerate(pool.in_order(jobs)):
+            if offset is not None:
+                out[j] = offset
             bar.update()
-        collect(0)
     return out
 
 

@@ -139,14 +139,11 @@ class FrameRenderer(MouthInteriors, DetailBand):
     ) -> FaceRender:
         """The networks' render of ``vertices_cam`` over footage frame ``index`` and what the paste needs
         (arguments as :meth:`render`), before a mouth-bank entry is chosen."""
-        # only the frame pixels under the crop box are read and written: they are taken out of the frame
-        # (2 pixels more for the bilinear samples) and every pixel position below is relative to them
-        # (box and principal point shifted alike, so the crop camera is the same)
-        ys, xs = box_slices(self.boxes[index], *frame.shape[:2], grow=2)
-        if ys.stop <= ys.start or xs.stop <= xs.start:  # the face is outside the frame: nothing to paint
-            return FaceRender(frame, index, vertices_cam, (ys, xs))
-        offset = np.array([xs.start, ys.start, 0.0])
-        box = self.boxes[index] - offset
+        under = self._under_box(frame, index)
+        if under is None:  # the face is outside the frame: nothing to paint
+            slices = box_slices(self.boxes[index], *frame.shape[:2], grow=2)
+            return FaceRender(frame, index, vertices_cam, slices)
+        (ys, xs), offset, box, img, crop = under
         f, c = self.seq.focal, self.seq.center - offset[:2]
         geo = self.raster(vertices_cam, f, c, box)
         region, lower = geo.region, geo.lower
@@ -154,8 +151,6 @@ class FrameRenderer(MouthInteriors, DetailBand):
         if original_cam is not None:
             orig = self.raster(original_cam, f, c, box)
             region, lower = torch.maximum(region, orig.region), torch.maximum(lower, orig.lower)
-        img = torch.from_numpy(frame[ys, xs]).permute(2, 0, 1).float()
-        crop = cut(img[None], torch.from_numpy(box[None]).float(), self.preset.crop) / 255
         source_in, moved = None, None
         # the footage frame's own geometry (its background off the mesh is kept, whatever the source)
         own_cam, own_geo = (vertices_cam, geo) if original_cam is None else (original_cam, orig)
@@ -221,6 +216,21 @@ class FrameRenderer(MouthInteriors, DetailBand):
             (gain, offset) if lit else None,
         )
 
+    def _under_box(self, frame: np.ndarray, index: int) -> tuple | None:
+        """The frame pixels under frame ``index``'s crop box, the only ones read and written: taken out of
+        the frame (2 pixels more for the bilinear samples), every pixel position after is relative to them
+        (box and principal point shifted alike, so the crop camera is the same). Returns their ``(rows,
+        columns)`` slices, the ``(x, y, 0)`` offset, the shifted box, the pixels ``(3, h, w)`` float and the
+        crop ``(1, 3, S, S)`` in [0, 1]; None when the box lies outside the frame."""
+        ys, xs = box_slices(self.boxes[index], *frame.shape[:2], grow=2)
+        if ys.stop <= ys.start or xs.stop <= xs.start:
+            return None
+        offset = np.array([xs.start, ys.start, 0.0])
+        box = self.boxes[index] - offset
+        img = torch.from_numpy(frame[ys, xs]).permute(2, 0, 1).float()
+        crop = cut(img[None], torch.from_numpy(box[None]).float(), self.preset.crop) / 255
+        return (ys, xs), offset, box, img, crop
+
     @torch.inference_mode()
     def surface(
         self, frame: np.ndarray, index: int, vertices_cam: np.ndarray
@@ -231,14 +241,11 @@ class FrameRenderer(MouthInteriors, DetailBand):
         well inside the mesh) and the crop's geometry; None when the face is outside the frame. What
         registration compares (:mod:`renderer.register`), at about half the networks' cost of
         :meth:`prepare`."""
-        ys, xs = box_slices(self.boxes[index], *frame.shape[:2], grow=2)
-        if ys.stop <= ys.start or xs.stop <= xs.start:
+        under = self._under_box(frame, index)
+        if under is None:
             return None
-        offset = np.array([xs.start, ys.start, 0.0])
-        box = self.boxes[index] - offset
+        _, offset, box, _, crop = under
         geo = self.raster(vertices_cam, self.seq.focal, self.seq.center - offset[:2], box)
-        img = torch.from_numpy(frame[ys, xs]).permute(2, 0, 1).float()
-        crop = cut(img[None], torch.from_numpy(box[None]).float(), self.preset.crop) / 255
         # a renderer taking the footage's moved pixels gets none (validity 0): this frame's own pixels moved
         # onto its own tracked surface would copy the crop wherever the tracking puts the face
         source = torch.zeros(1, 4, *crop.shape[-2:]) if self.net.source_input else None

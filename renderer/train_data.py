@@ -6,7 +6,6 @@ crops live); frames in a passing light are left out (:func:`transient_light`).
 from __future__ import annotations
 
 import logging
-from collections import deque
 from contextlib import ExitStack
 from dataclasses import dataclass
 from functools import partial
@@ -230,18 +229,9 @@ def build_cache(
         Workers(rasterizers, made) as pool,
         tqdm(total=n, desc="prepare renderer frames", disable=not progress, unit="frame") as bar,
     ):
-        pending: deque = deque()
-
-        def collect(left: int) -> None:
-            while len(pending) > left:
-                pending.popleft().result()
-                bar.update(1)
-
-        for t, img in enumerate(iter_frames(video, fps=seq.fps, max_frames=last)):
-            if t in row:
-                pending.append(pool.submit(partial(fill, row[t], t, img)))
-            collect(len(rasterizers) - 1)
-        collect(0)
+        frames_in = enumerate(iter_frames(video, fps=seq.fps, max_frames=last))
+        for _ in pool.in_order(partial(fill, row[t], t, img) for t, img in frames_in if t in row):
+            bar.update(1)
     off = transient_light(frames, face_light(cache.crops, cache.mask, cache.mouth), seq.fps)
     if off.any():
         log.warning(

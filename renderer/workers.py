@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import ExitStack
 from typing import TYPE_CHECKING, Generic, TypeVar
@@ -28,6 +29,8 @@ class Workers(Generic[R]):
         if owned is not None:  # what closes the resources: last, once the threads have stopped
             self._stack.enter_context(owned)
         self._idle = list(resources)
+        self.size = len(self._idle)
+        """How many jobs run at once."""
         self._pool = None
         if len(self._idle) > 1:
             self._pool = ThreadPoolExecutor(len(self._idle), initializer=torch.set_num_threads, initargs=(1,))
@@ -55,6 +58,18 @@ class Workers(Generic[R]):
         done: Future = Future()
         done.set_result(run())
         return done
+
+    def in_order(self, jobs: Iterable[Callable[[R], T] | None]) -> Iterator[T | None]:
+        """Each of ``jobs``'s results in order (None for a None job), the next ones running meanwhile: at
+        most one job per resource is taken from ``jobs`` ahead of the result being handed out."""
+        pending: deque[Future | None] = deque()
+        for job in jobs:
+            pending.append(None if job is None else self.submit(job))
+            while pending and (len(pending) >= self.size or pending[0] is None):
+                future = pending.popleft()
+                yield None if future is None else future.result()
+        for future in pending:
+            yield None if future is None else future.result()
 
 
 class RenderWorkers(Workers["FrameRenderer"]):
