@@ -27,9 +27,13 @@ LOWER_FACE = 0.02
 """Mouth weight (``FaceModel.mouth_weights``) above which a mesh pixel is part of the re-rendered lower
 face."""
 
-WINDOW_MARGIN = 0.25
+WINDOW_MARGIN = 0.125
 """The networks run on the part of the crop around the painted lower face, grown by this fraction of the
-crop side (see :func:`network_window`): the upper face is never pasted, so it is not rendered either."""
+crop side (see :func:`network_window`): the upper face is never pasted, so it is not rendered either. An
+eighth (24 px of a 192² crop) keeps a dub's frames within 4 levels of 255 of the whole crop's in float32
+(`scripts.tools.compare_dub`, three people: mouth box 55.7-57.7 dB, 44.7 on the worst frame, where a quarter
+gave 46.3) with two thirds of a quarter's network time; a twelfth moved pixels by 12 levels (39 dB on the
+worst frame). docs/performance.md."""
 
 
 SURFACE_MARGIN = 16 / 192
@@ -304,9 +308,9 @@ class FrameRenderer(MouthInteriors, DetailBand):
 
 def network_window(paint: torch.Tensor, margin: int, multiple: int = 16) -> tuple[slice, slice]:
     """The rows and columns of the crop the networks need for ``paint`` ``(1, 1, S, S)`` (the part that is
-    pasted): its bounding box grown by ``margin`` pixels (the networks' context: measured on dfrf__cnn2,
-    48 px of a 192² crop change no output pixel by more than 5 of 255) and widened outwards to multiples of
-    ``multiple`` (the strided U-Nets halve the size 4 times); the whole crop when nothing is painted."""
+    pasted): its bounding box grown by ``margin`` pixels (the networks' context, :data:`WINDOW_MARGIN`) and
+    widened outwards to multiples of ``multiple`` (the strided U-Nets halve the size 4 times); the whole crop
+    when nothing is painted."""
     size = paint.shape[-1]
     rows = torch.nonzero(paint[0, 0].amax(1) > 0)[:, 0]
     cols = torch.nonzero(paint[0, 0].amax(0) > 0)[:, 0]
