@@ -50,12 +50,13 @@ class DetailBand:
         src_geo: FrameGeometry | None = None,
         src_crop: torch.Tensor | None = None,
         offset: np.ndarray | None = None,
+        window: tuple[slice, slice] | None = None,
     ) -> tuple[torch.Tensor, tuple]:
         """The source frame ``src_img`` ``(3, H, W)`` (frame ``src_index`` under ``src_cam`` ``(V, 3)``)
         moved onto the surface of ``geo``: the network's ``(4, S, S)`` source input and the ``moved``
         argument of :func:`renderer.crop.paste`; ``src_geo`` / ``src_crop`` (in [0, 1]) when the caller has
         them already; ``offset``: the frame pixel ``(x, y)`` where ``src_img`` starts (a part of the
-        frame)."""
+        frame); ``window``: the crop's rows and columns to move it onto (the rest is invalid)."""
         shift = np.zeros(2) if offset is None else offset
         src_box = self.boxes[src_index] - np.array([*shift, 0.0])
         f, c = self.seq.focal, self.seq.center - shift
@@ -64,7 +65,7 @@ class DetailBand:
         if src_crop is None:
             src_crop = cut(src_img[None], torch.from_numpy(src_box[None]).float(), self.preset.crop)[0] / 255
         source_in, pos, valid = moved_source(
-            geo, src_crop, src_box, src_cam, src_geo.depth, (f, c), self._triangles, self._movable
+            geo, src_crop, src_box, src_cam, src_geo.depth, (f, c), self._triangles, self._movable, window
         )
         no_band = torch.zeros_like(valid)  # until :meth:`_band`
         no_render_band = torch.zeros_like(src_crop)

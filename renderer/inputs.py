@@ -113,8 +113,10 @@ def moved_source(
     camera: tuple[float, np.ndarray],
     triangles: torch.Tensor,
     movable: torch.Tensor,
+    window: tuple[slice, slice] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """A source frame's pixels moved onto the surface of ``geo`` (one rendered crop).
+    """A source frame's pixels moved onto the surface of ``geo`` (one rendered crop), or onto its
+    ``window`` ``(rows, columns)`` only (0 and invalid elsewhere: the rest of the crop is not painted).
 
     Args:
         geo: fragments of the geometry being rendered (``triangle_id``, ``barycentric``).
@@ -132,10 +134,11 @@ def moved_source(
     size = source_crop.shape[-1]
     focal, center = camera
     scale, origin = size / float(source_box[2]), source_box[:2] - source_box[2] / 2
+    rows, cols = window or (slice(None), slice(None))
     pixels = torch.from_numpy(pinhole(source_cam, focal, center)).float()
-    pos, valid = source_positions(
-        geo.triangle_id,
-        geo.barycentric,
+    pos_w, valid_w = source_positions(
+        geo.triangle_id[rows, cols],
+        geo.barycentric[rows, cols],
         triangles,
         pixels,
         torch.from_numpy(np.ascontiguousarray(source_cam[:, 2])).float(),
@@ -143,9 +146,13 @@ def moved_source(
         (scale, origin),
         movable,
     )
-    crop_pos = (pos - torch.as_tensor(origin, dtype=pos.dtype)) * scale
-    moved = sample_pixels(source_crop, crop_pos) * valid
-    return torch.cat([moved, valid[None]]), pos, valid
+    crop_pos = (pos_w - torch.as_tensor(origin, dtype=pos_w.dtype)) * scale
+    out = torch.zeros(source_crop.shape[0] + 1, size, size)
+    out[:-1, rows, cols] = sample_pixels(source_crop, crop_pos) * valid_w
+    out[-1, rows, cols] = valid_w
+    pos = torch.zeros(size, size, 2)
+    pos[rows, cols] = pos_w
+    return out, pos, out[-1].clone()
 
 
 @dataclass

@@ -155,22 +155,24 @@ class FrameRenderer(MouthInteriors, DetailBand):
         if original_cam is not None:
             orig = self.raster(original_cam, f, c, box)
             region, lower = torch.maximum(region, orig.region), torch.maximum(lower, orig.lower)
-        source_in, moved = None, None
-        # the footage frame's own geometry (its background off the mesh is kept, whatever the source)
-        own_cam, own_geo = (vertices_cam, geo) if original_cam is None else (original_cam, orig)
-        if self.detail or self.net.source_input:
-            if source is None:  # this very frame under its own tracked geometry
-                source_in, moved = self._moved(geo, img, index, own_cam, own_geo, crop[0], offset[:2])
-                source = (frame, index, own_cam)
-            else:
-                src_img = torch.from_numpy(source[0]).permute(2, 0, 1).float()
-                source_in, moved = self._moved(geo, src_img, source[1], source[2])
         # only the lower face (where the geometry can differ from the footage) and its surroundings are
         # pasted: eyes, brows and forehead keep the footage's own pixels at full resolution; around the
         # painted part the footage keeps its full-resolution detail too (the crop is softer), while inside
         # it nothing of the footage's own mouth and chin shows through
         paint = face_region((lower > LOWER_FACE).float(), self.preset.region_grow) * region
         dev, (rows, cols) = self.device, network_window(paint, self.window_margin)
+        source_in, moved = None, None
+        # the footage frame's own geometry (its background off the mesh is kept, whatever the source)
+        own_cam, own_geo = (vertices_cam, geo) if original_cam is None else (original_cam, orig)
+        if self.detail or self.net.source_input:  # the source moved onto the networks' window only
+            if source is None:  # this very frame under its own tracked geometry
+                source_in, moved = self._moved(
+                    geo, img, index, own_cam, own_geo, crop[0], offset[:2], window=(rows, cols)
+                )
+                source = (frame, index, own_cam)
+            else:
+                src_img = torch.from_numpy(source[0]).permute(2, 0, 1).float()
+                source_in, moved = self._moved(geo, src_img, source[1], source[2], window=(rows, cols))
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=self.bf16):
             _, inside = self.net(
                 geo.uv[:, rows, cols].to(dev),

@@ -195,6 +195,42 @@ def test_moved_geometry_points_at_the_old_place_and_hidden_or_excluded_points_ar
     assert valid3[r.triangle_id == 1].max() == 0 and valid3[r.triangle_id == 0].min() == 1
 
 
+def test_the_source_moved_onto_a_window_is_the_whole_crops_there_and_invalid_elsewhere():
+    from types import SimpleNamespace
+
+    from renderer.inputs import moved_source
+
+    size, focal, center = 32, 100.0, np.array([16.0, 16.0])
+    old, tri = quad()
+    new, _ = quad(shift=0.2)
+    r = rasterize_reference(new, tri, np.zeros((4, 2)), focal, center, size, size)
+    src = rasterize_reference(old, tri, np.zeros((4, 2)), focal, center, size, size)
+    geo = SimpleNamespace(triangle_id=r.triangle_id, barycentric=r.barycentric)
+    crop = torch.rand(3, size, size, generator=torch.Generator().manual_seed(0))
+    box = np.array([16.0, 16.0, 32.0])  # the crop is the frame: crop pixel = frame pixel
+    args = (
+        geo,
+        crop,
+        box,
+        old,
+        src.depth,
+        (focal, center),
+        torch.from_numpy(tri),
+        torch.ones(2, dtype=torch.bool),
+    )
+    whole, pos, valid = moved_source(*args)
+    rows, cols = slice(8, 24), slice(16, 32)
+    part, pos_w, valid_w = moved_source(*args, window=(rows, cols))
+    assert valid[rows, cols].sum() > 50  # the window shows moved pixels
+    assert torch.equal(part[:, rows, cols], whole[:, rows, cols]) and torch.equal(
+        pos_w[rows, cols], pos[rows, cols]
+    )
+    assert torch.equal(valid_w, part[3])
+    outside = torch.ones(size, size, dtype=torch.bool)
+    outside[rows, cols] = False
+    assert part[:, outside].abs().max() == 0 and pos_w[outside].abs().max() == 0
+
+
 def test_renderer_with_source_input_keeps_moved_pixels_where_it_trusts_them():
     from renderer.networks import NeuralRenderer, UNetConfig
 
