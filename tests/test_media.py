@@ -194,6 +194,13 @@ def test_live_footage_plays_forward_and_back_forever(clip: Path) -> None:
     assert [i for i, _ in got] == target_frame_indices(45, 10).tolist()
     for i, frame in got:
         np.testing.assert_array_equal(frame, every[i])
+    # a stream at 2/3 of the footage's rate: the nearest footage frame of each output frame's time
+    slower = list(islice(_target_frames(clip, 10, 25.0, step=1.5), 60))
+    assert [i for i, _ in slower] == target_frame_indices(90, 10)[
+        [int(j * 1.5 + 0.5) for j in range(60)]
+    ].tolist()
+    for i, frame in slower:
+        np.testing.assert_array_equal(frame, every[i])
 
 
 def test_seek_with_short_gop_matches_full_decode(tmp_path: Path) -> None:

@@ -701,6 +701,12 @@ def test_live_dubs_a_stream_in_real_time_and_to_a_pipe(bundle, tmp_path):
     (tmp_path / "gaze.csv").write_text("time_s,yaw_deg,pitch_deg\n0,10,0\n4,-10,5\n")
     r = live(wav, bundle, tmp_path / "looked.mp4", realtime=False, gaze=tmp_path / "gaze.csv")
     assert r.frames == 125 and verify(tmp_path / "looked.mp4").tags.get("nvp_gaze") == "gaze.csv"
+    # a slower stream: every other footage frame and expression, the same length
+    half = tmp_path / "half.mp4"
+    r = live(wav, bundle, half, realtime=False, fps=12.5)
+    assert r.fps == 12.5 and r.frames == 63 and probe_video(half).num_frames == 63  # frames 0, 2, …, 124
+    assert abs(probe_video(half).duration_s - probe_video(out).duration_s) < 0.1  # as long as at 25 fps
+    assert_one_line_error(nvp("live", wav, "--person", bundle, "-o", half, "--fps", "50"), "--fps")
 
 
 def test_batch_dub_of_ten_files_goes_on_past_a_failing_one(bundle, tmp_path):

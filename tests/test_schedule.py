@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from nvp.schedule import target_frame_indices
+from nvp.schedule import ping_pong, stream_positions, target_frame_indices
 
 
 @pytest.mark.parametrize(("n_out", "n_target"), [(10, 25), (25, 25), (100, 25), (7, 2), (5, 1)])
@@ -26,3 +26,11 @@ def test_forward_then_backward():
 def test_empty_target_is_an_error():
     with pytest.raises(ValueError, match="at least one frame"):
         target_frame_indices(3, 0)
+
+
+def test_a_slower_stream_shows_the_nearest_footage_frame_and_keeps_its_speed():
+    np.testing.assert_array_equal(stream_positions(0, 5, 1.5), [0, 2, 3, 5, 6])  # 0, 1.5, 3, 4.5, 6
+    np.testing.assert_array_equal(stream_positions(3, 2, 2.0), [6, 8])
+    np.testing.assert_array_equal(stream_positions(0, 4, 1.0), [0, 1, 2, 3])
+    assert np.all(np.diff(stream_positions(0, 1000, 1.0001)) >= 1)  # never one footage frame twice
+    np.testing.assert_array_equal(ping_pong(np.array([0, 3, 4, 6, 7]), 4), [0, 3, 2, 0, 1])

@@ -16,6 +16,7 @@ When rendering falls behind by more than ``max_lag_s``, frames are not rendered 
 from __future__ import annotations
 
 import bisect
+import itertools
 import queue
 import sys
 import threading
@@ -107,17 +108,21 @@ def pcm_blocks(stream: BinaryIO, rate: int, block_s: float = BLOCK_S) -> Iterato
         yield x
 
 
-def _target_frames(path: Path, num_target: int, fps: float) -> Iterator[tuple[int, np.ndarray]]:
-    """The footage's frames in ``nvp dub``'s forward-backward order, forever: ``(index, frame)``, read one
-    forward-and-back pass (at least 48 frames) at a time (one decoder runs through the forward half, see
-    :func:`nvp.media.frames_at`; the frames held are its chunk's at most)."""
+def _target_frames(
+    path: Path, num_target: int, fps: float, step: float = 1.0
+) -> Iterator[tuple[int, np.ndarray]]:
+    """The footage's frames in ``nvp dub``'s forward-backward order, forever: ``(index, frame)`` of each
+    output frame, ``step`` footage frames after the one before (a stream at the footage's rate over
+    ``step``, :func:`nvp.schedule.stream_positions`), read at least one forward-and-back pass (48 output
+    frames at least) at a time (one decoder runs through the forward half, see :func:`nvp.media.frames_at`;
+    the frames held are its chunk's at most)."""
     from nvp.media import frames_at
-    from nvp.schedule import target_frame_indices
+    from nvp.schedule import ping_pong, stream_positions
 
     period = max(1, 2 * (num_target - 1))
-    passes = -(-48 // period)  # a very short footage: several passes per read
-    while True:
-        order = target_frame_indices(period * passes, num_target)
+    chunk = period * -(-48 // period)  # a very short footage: several passes per read
+    for first in itertools.count(0, chunk):
+        order = ping_pong(stream_positions(first, chunk, step), num_target)
         yield from zip(order.tolist(), frames_at(path, order, fps), strict=True)
 
 
@@ -134,18 +139,22 @@ def live(
     lookahead_s: float | None = None,
     status=None,
     gaze: str | Path = "footage",
+    fps: float | None = None,
 ) -> LiveResult:
     """Dub the person of ``bundle_dir`` live from ``source`` (an audio/video file, or ``"-"``: raw PCM on
     stdin at ``rate`` Hz). Frames go to ``output`` (fragmented MP4 with the audio) and/or ``raw_out``
     (RGB24, ``width × height × 3`` bytes per frame). ``status(text)`` is called about once a second.
     ``gaze``: where the eyes look, as :func:`nvp.app.dub.dub` takes it (a gaze file's times count from the
-    stream's start)."""
+    stream's start). ``fps``: frames per second of the stream, at most the person's (the default): a lower
+    rate renders fewer frames (each the footage frame and the expressions nearest its time, so head and
+    mouth move at their real speed), for a machine that cannot render every frame in time."""
     from nvp.app.dub import check_gaze, dubbed_vertices, gaze_mark, load_person
     from nvp.artifact import check_output_file
     from nvp.bundle import PersonBundle
     from nvp.gaze import gaze_at, gaze_file, read_gaze_file
     from nvp.media import VideoWriter
     from nvp.provenance import synthetic_mark
+    from nvp.schedule import stream_positions
     from nvp.stream import LOOKAHEAD_S, ExpressionStream
     from nvp.threads import ThreadGovernor, frame_workers
     from renderer.eyes import turn_eyes
@@ -166,13 +175,17 @@ def live(
     bundle = PersonBundle.load(bundle_dir)
     person = load_person(bundle, style)
     seq, model = person.tracked, person.model
+    rate = seq.fps if fps is None else float(fps)
+    if not 1.0 <= rate <= seq.fps * (1 + 1e-6):
+        raise NvpError(f"--fps {rate:g}: choose a rate from 1 to the person's {seq.fps:g} frames/s")
+    step = seq.fps / rate
     if str(gaze) != "footage":
         check_gaze(seq)
     gaze_rows = None if gaze_file(gaze) is None else read_gaze_file(gaze_file(gaze))
     lookahead = LOOKAHEAD_S if lookahead_s is None else lookahead_s
     stream = ExpressionStream(person.style, person.net, seq.fps, lookahead)
     weights = model.mouth_weights()
-    footage = _target_frames(bundle.path("target"), seq.num_frames, seq.fps)
+    footage = _target_frames(bundle.path("target"), seq.num_frames, seq.fps, step)
     mark = {**person.mark, **gaze_mark(gaze)}
     tags = synthetic_mark("live", bundle=bundle.manifest.get("id", bundle.root.name), **mark)
     totals: list[int] = []  # samples received in all after each block
@@ -183,15 +196,30 @@ def live(
     t0 = time.perf_counter()
     next_status = t0 + 1.0
 
+    def time_of(j: int) -> float:
+        """Output frame ``j``'s time in the stream: the footage frame's it shows."""
+        return float(stream_positions(j, 1, step)[0]) / seq.fps
+
     def arrival(j: int) -> float:
-        """When the audio sample at frame ``j``'s time arrived."""
-        i = bisect.bisect_left(totals, int(j / seq.fps * 16000) + 1)
+        """When the audio sample at output frame ``j``'s time arrived."""
+        i = bisect.bisect_left(totals, int(time_of(j) * 16000) + 1)
         return times[min(i, len(times) - 1)]
+
+    taken = made = 0  # output frames taken from the stream; the stream's frames (the footage's rate)
+
+    def outputs(expressions: np.ndarray) -> np.ndarray:
+        """The output frames' expressions among the stream's newly made ``expressions``."""
+        nonlocal taken, made
+        first, made = made, made + len(expressions)
+        at = stream_positions(taken, len(expressions) + 1, step)
+        at = at[at < made]
+        taken += len(at)
+        return expressions[at - first]
 
     with (
         FrameRenderer(bundle.path("renderer"), model, seq, device) as fr,
         VideoWriter(
-            output, seq.fps, seq.width, seq.height, np.zeros(0, np.float32), 16000, metadata=tags, live=True
+            output, rate, seq.width, seq.height, np.zeros(0, np.float32), 16000, metadata=tags, live=True
         )
         if output is not None
         else _NoWriter() as vw,
@@ -211,7 +239,7 @@ def live(
             image = renderer.composite(face, mouth)
             if str(gaze) == "footage":
                 return image
-            look = None if gaze_rows is None else gaze_at(gaze_rows, np.array([j / seq.fps]))[0]
+            look = None if gaze_rows is None else gaze_at(gaze_rows, np.array([time_of(j)]))[0]
             return turn_eyes(model, seq, image, face.index, look)
 
         def emit(expressions: np.ndarray) -> None:
@@ -272,10 +300,10 @@ def live(
             times.append(when)
             if output is not None:
                 vw.add_audio(block)
-            emit(stream.push(block))
+            emit(outputs(stream.push(block)))
         if not totals:
             raise NvpError(f"{source}: no audio arrived")
-        emit(stream.finish())
+        emit(outputs(stream.finish()))
     return LiveResult(
         frames=len(latency),
         dropped=dropped,
@@ -283,7 +311,7 @@ def live(
         lookahead_s=lookahead,
         audio_seconds=stream.received / 16000,
         seconds=time.perf_counter() - t0,
-        fps=seq.fps,
+        fps=rate,
     )
 
 

@@ -38,6 +38,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=20.0, help="play this much of it")
     ap.add_argument("--busy", action="store_true", help="keep one core busy with another process")
     ap.add_argument("--max-lag", type=float, default=1.0)
+    ap.add_argument(
+        "--fps", type=float, help="the stream's frame rate (nvp live --fps; default the person's)"
+    )
     allocator_option(ap)
     args = ap.parse_args(argv)
     set_allocator(args.glibc_defaults)
@@ -61,7 +64,9 @@ def main(argv: list[str] | None = None) -> int:
             wav = Path(tmp) / "speech.wav"
             sf.write(wav, audio, 16000)
             t0 = time.perf_counter()
-            r = live(wav, args.person, Path(tmp) / "live.mp4", realtime=True, max_lag_s=args.max_lag)
+            r = live(
+                wav, args.person, Path(tmp) / "live.mp4", realtime=True, max_lag_s=args.max_lag, fps=args.fps
+            )
             wall = time.perf_counter() - t0
     finally:
         stop.set()

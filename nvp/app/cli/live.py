@@ -27,10 +27,25 @@ def add_parser(sub) -> None:
     p.add_argument(
         "--max-lag", type=float, default=1.0, help="seconds behind the audio after which frames are dropped"
     )
+    p.add_argument(
+        "--fps",
+        type=float,
+        help="frames per second of the stream, at most the person's (default): a lower rate for a machine "
+        "that drops frames",
+    )
     add_gaze_arg(p)
     add_style_arg(p)
     add_device_arg(p)
     p.set_defaults(func=run)
+
+
+def slower_hint(r) -> str:
+    """When ``r`` (a :class:`nvp.app.live.LiveResult`) dropped frames: the stream rate this machine
+    rendered, as a ``--fps`` to try."""
+    if r.dropped <= 0.02 * r.frames or r.seconds <= 0:
+        return ""
+    rendered = (r.frames - r.dropped) / r.seconds
+    return f"; this machine rendered {rendered:.1f} frames/s: try --fps {max(1, int(rendered * 0.9))}"
 
 
 def run(args: argparse.Namespace) -> int:
@@ -47,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
         from nvp.bundle import PersonBundle
 
         t = PersonBundle.load(args.person, verify=False).manifest["target"]  # live() checks it in full
-        size, fps = f"{t['width']}x{t['height']}", f"{t['fps']:.3f}"
+        size, fps = f"{t['width']}x{t['height']}", f"{args.fps or t['fps']:.3f}"
         print(
             f"nvp live: raw RGB24 {size} at {fps} fps on stdout, e.g. | ffplay -f rawvideo "
             f"-pixel_format rgb24 -video_size {size} -framerate {fps} -",
@@ -65,6 +80,7 @@ def run(args: argparse.Namespace) -> int:
         gaze=args.gaze,
         max_lag_s=args.max_lag,
         status=status,
+        fps=args.fps,
     )
     lat = r.latency_s[r.latency_s.size // 10 :] if r.latency_s.size > 10 else r.latency_s  # after warm-up
     print(
@@ -73,7 +89,8 @@ def run(args: argparse.Namespace) -> int:
         f"{np.median(lat):.2f} s, 95th percentile {np.percentile(lat, 95):.2f} s "
         f"(look-ahead {r.lookahead_s:.2f} s included); "
         f"{r.dropped} frames dropped ({r.dropped / max(r.frames, 1):.0%})"
-        + (f" → {args.output}" if args.output else ""),
+        + (f" → {args.output}" if args.output else "")
+        + slower_hint(r),
         file=sys.stderr if args.raw else sys.stdout,
     )
     return 0
