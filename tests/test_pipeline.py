@@ -701,6 +701,7 @@ def test_live_dubs_a_stream_in_real_time_and_to_a_pipe(bundle, tmp_path):
     (tmp_path / "gaze.csv").write_text("time_s,yaw_deg,pitch_deg\n0,10,0\n4,-10,5\n")
     r = live(wav, bundle, tmp_path / "looked.mp4", realtime=False, gaze=tmp_path / "gaze.csv")
     assert r.frames == 125 and verify(tmp_path / "looked.mp4").tags.get("nvp_gaze") == "gaze.csv"
+    assert r.dropped == 0  # as fast as it can: the file "arrived" at once, but no frame is late for a clock
     # a slower stream: every other footage frame and expression, the same length
     half = tmp_path / "half.mp4"
     r = live(wav, bundle, half, realtime=False, fps=12.5)

@@ -1,8 +1,8 @@
 """``nvp live``: dub audio as it arrives and emit each frame as soon as it is made.
 
-Audio comes from a file played in real time (or as fast as possible with ``realtime=False``) or from raw
-PCM on stdin (signed 16-bit little-endian mono, e.g. a microphone: ``arecord -f S16_LE -r 16000 -c 1 -t
-raw | nvp live - --person P ...``). A reader thread stamps each block with its arrival time; the main loop
+Audio comes from a file played in real time (or as fast as possible with ``realtime=False``, every frame
+rendered) or from raw PCM on stdin (signed 16-bit little-endian mono, e.g. a microphone: ``arecord -f S16_LE
+-r 16000 -c 1 -t raw | nvp live - --person P ...``). A reader thread stamps each block with its arrival time; the main loop
 turns the audio into expressions with :class:`nvp.stream.ExpressionStream` (a frame is predicted once its
 audio and :data:`nvp.stream.LOOKAHEAD_S` more have arrived), renders the frame into the person's footage
 (played forward and backward as in ``nvp dub``) and writes it at once: to a fragmented MP4 that grows a
@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import bisect
 import itertools
+import math
 import queue
 import sys
 import threading
@@ -172,6 +173,8 @@ def live(
         if not Path(source).is_file():
             raise NvpError(f"{source}: no such audio file")
         blocks, pace = file_blocks(Path(source)), (16000.0 if realtime else None)
+        if not realtime:  # no clock to keep up with (the whole file "arrives" at once): every frame is made
+            max_lag_s = math.inf
     bundle = PersonBundle.load(bundle_dir)
     person = load_person(bundle, style)
     seq, model = person.tracked, person.model

@@ -22,7 +22,7 @@ def add_parser(sub) -> None:
         "--realtime",
         action=argparse.BooleanOptionalAction,
         default=True,
-        help="play a file at its real pace (--no-realtime: as fast as it can)",
+        help="play a file at its real pace (--no-realtime: as fast as it can, every frame rendered)",
     )
     p.add_argument(
         "--max-lag", type=float, default=1.0, help="seconds behind the audio after which frames are dropped"
