@@ -2,11 +2,12 @@
 
 Audio comes from a file played in real time (or as fast as possible with ``realtime=False``, every frame
 rendered) or from raw PCM on stdin (signed 16-bit little-endian mono, e.g. a microphone: ``arecord -f S16_LE
--r 16000 -c 1 -t raw | nvp live - --person P ...``). A reader thread stamps each block with its arrival time; the main loop
-turns the audio into expressions with :class:`nvp.stream.ExpressionStream` (a frame is predicted once its
-audio and :data:`nvp.stream.LOOKAHEAD_S` more have arrived), renders the frame into the person's footage
-(played forward and backward as in ``nvp dub``) and writes it at once: to a fragmented MP4 that grows a
-fragment per second (with the audio), and/or as raw RGB frames to stdout for a player or a virtual camera.
+-r 16000 -c 1 -t raw | nvp live - --person P ...``). A reader thread stamps each block with its arrival
+time; the main loop turns the audio into expressions with :class:`nvp.stream.ExpressionStream` (a frame
+is predicted once its audio and :data:`nvp.stream.LOOKAHEAD_S` more have arrived), renders the frame into
+the person's footage (played forward and backward as in ``nvp dub``) and writes it at once: to a
+fragmented MP4 that grows a fragment per second (with the audio), and/or as raw RGB frames to stdout for a
+player or a virtual camera.
 
 Latency of a frame: from the arrival of the audio sample at the frame's time to the frame being written.
 When rendering falls behind by more than ``max_lag_s``, frames are not rendered but repeat the last one
@@ -178,10 +179,10 @@ def live(
     bundle = PersonBundle.load(bundle_dir)
     person = load_person(bundle, style)
     seq, model = person.tracked, person.model
-    rate = seq.fps if fps is None else float(fps)
-    if not 1.0 <= rate <= seq.fps * (1 + 1e-6):
-        raise NvpError(f"--fps {rate:g}: choose a rate from 1 to the person's {seq.fps:g} frames/s")
-    step = seq.fps / rate
+    out_fps = seq.fps if fps is None else float(fps)
+    if not 1.0 <= out_fps <= seq.fps * (1 + 1e-6):
+        raise NvpError(f"--fps {out_fps:g}: choose a rate from 1 to the person's {seq.fps:g} frames/s")
+    step = seq.fps / out_fps
     if str(gaze) != "footage":
         check_gaze(seq)
     gaze_rows = None if gaze_file(gaze) is None else read_gaze_file(gaze_file(gaze))
@@ -222,7 +223,7 @@ def live(
     with (
         FrameRenderer(bundle.path("renderer"), model, seq, device) as fr,
         VideoWriter(
-            output, rate, seq.width, seq.height, np.zeros(0, np.float32), 16000, metadata=tags, live=True
+            output, out_fps, seq.width, seq.height, np.zeros(0, np.float32), 16000, metadata=tags, live=True
         )
         if output is not None
         else _NoWriter() as vw,
@@ -314,7 +315,7 @@ def live(
         lookahead_s=lookahead,
         audio_seconds=stream.received / 16000,
         seconds=time.perf_counter() - t0,
-        fps=rate,
+        fps=out_fps,
     )
 
 
