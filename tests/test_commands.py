@@ -131,3 +131,16 @@ def test_training_with_audio_copies_reads_them_and_stays_reproducible(face_model
     c = train(noisy, val_set, face_model, cfg, tmp_path / "c", progress=False)
     assert b["log"][-1]["train_loss"] != a["log"][-1]["train_loss"]  # the copies were read
     assert b["log"] == [dict(r, seconds=br["seconds"]) for r, br in zip(c["log"], b["log"], strict=True)]
+
+
+def test_a_live_run_that_dropped_frames_suggests_the_rate_this_machine_rendered():
+    from types import SimpleNamespace
+
+    from nvp.app.cli.live import slower_hint
+
+    def run(dropped: int, audio_s: float = 8.0) -> str:
+        return slower_hint(SimpleNamespace(frames=240, dropped=dropped, seconds=10.0, audio_seconds=audio_s))
+
+    assert run(100) == "; this machine rendered 14.0 frames/s: try --fps 12"  # 140 of 240 in 10 s
+    assert run(0) == run(4) == ""  # none or a few dropped: nothing to suggest
+    assert run(100, audio_s=2.0) == ""  # too short: the start-up would weigh as much as the frames

@@ -41,8 +41,8 @@ def add_parser(sub) -> None:
 
 def slower_hint(r) -> str:
     """When ``r`` (a :class:`nvp.app.live.LiveResult`) dropped frames: the stream rate this machine
-    rendered, as a ``--fps`` to try."""
-    if r.dropped <= 0.02 * r.frames or r.seconds <= 0:
+    rendered, as a ``--fps`` to try (after 5 s of audio at least: before, the start-up weighs too much)."""
+    if r.dropped <= 0.02 * r.frames or r.seconds <= 0 or r.audio_seconds < 5:
         return ""
     rendered = (r.frames - r.dropped) / r.seconds
     return f"; this machine rendered {rendered:.1f} frames/s: try --fps {max(1, int(rendered * 0.9))}"
