@@ -203,6 +203,29 @@ def test_live_footage_plays_forward_and_back_forever(clip: Path) -> None:
         np.testing.assert_array_equal(frame, every[i])
 
 
+def test_a_live_file_keeps_its_rate_and_its_sound_in_time(tmp_path: Path) -> None:
+    """A live (fragmented) file reads at its frame rate, plays while it grows, and its sound starts with
+    the picture: a click given with frame 30 plays at 1.0 s, frame 30's time."""
+    click = np.zeros(32000, np.float32)
+    click[16000:16400] = 0.8 * np.sin(np.arange(400) * 0.5)
+    path, rng = tmp_path / "live.mp4", np.random.default_rng(0)
+    w = VideoWriter(path, fps=30, width=192, height=192, audio=np.zeros(0, np.float32), live=True)
+    for i in range(60):
+        w.add_audio(click[i * 16000 // 30 : (i + 1) * 16000 // 30])
+        w.write(
+            np.full((192, 192, 3), 255, np.uint8) if i == 30 else rng.integers(0, 60, (192, 192, 3), np.uint8)
+        )
+        if i == 45:  # a fragment a second: the first second is on disk while the file is being written
+            assert probe_video(path).num_frames >= 10
+    w.close()
+    info = probe_video(path)
+    assert (info.fps, info.num_frames, info.variable_frame_rate) == (30, 60, False)
+    with av.open(str(path)) as c:
+        white = [float(f.time) for f in c.decode(video=0) if f.to_ndarray(format="rgb24").mean() > 128]
+    sound = read_audio(path, 16000)
+    assert white == [1.0] and abs(np.argmax(np.abs(sound) > 0.2) / 16000 - 1.0) < 0.002
+
+
 def test_seek_with_short_gop_matches_full_decode(tmp_path: Path) -> None:
     path = tmp_path / "gop.mp4"
     write_pyav(path, [(10 + 12 * k, 40 * k) for k in range(20)], gop=4)

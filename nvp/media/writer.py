@@ -142,7 +142,11 @@ class VideoWriter:
             if live
             else str(target.with_name(f".{target.stem}.nvp-{os.getpid()}-{secrets.token_hex(4)}.tmp{suffix}"))
         )
-        flags = "+frag_keyframe+empty_moov+default_base_moof" if live else "+faststart"
+        # a live file's header waits for its first fragment (``delay_moov``, not ``empty_moov``): it then
+        # holds the edit list that drops the AAC encoder's priming samples, as a whole file's does; with an
+        # empty header the muxer moved every frame but the first by the priming delay instead (the first
+        # lasted three frames at 30 fps and the file read as 29.07 fps)
+        flags = "+frag_keyframe+delay_moov+default_base_moof" if live else "+faststart"
         options = (
             {"movflags": flags + "+use_metadata_tags"} if suffix.lower() in (".mp4", ".mov", ".m4v") else {}
         )
