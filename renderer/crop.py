@@ -13,9 +13,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 import torch.nn.functional as F
-from kornia.filters import gaussian_blur2d, get_gaussian_kernel1d
+from kornia.filters import get_gaussian_kernel1d
 
-from renderer.masks import box_blur, dilate
+from renderer.masks import box_blur, dilate, gaussian_blur
 from renderer.warp import moved_detail, sample_pixels, smooth
 
 
@@ -366,8 +366,7 @@ the visual, audio-driven and dub re-creations, against the mask enlarged as it i
 def interior_edge_field(mask: torch.Tensor) -> torch.Tensor:
     """``(h, w)`` float: the crop's binary mouth-interior ``mask`` ``(h, w)`` blurred by
     :data:`INTERIOR_EDGE_SIGMA`, to be read at footage pixels by :func:`sharp_edge`."""
-    sigma = (INTERIOR_EDGE_SIGMA, INTERIOR_EDGE_SIGMA)
-    return gaussian_blur2d(mask[None, None].float(), (3, 3), sigma, border_type="replicate")[0, 0]
+    return gaussian_blur(mask[None, None].float(), 3, INTERIOR_EDGE_SIGMA)[0, 0]
 
 
 def sharp_edge(field: torch.Tensor, step: float) -> torch.Tensor:

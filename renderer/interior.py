@@ -13,11 +13,11 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
-from kornia.filters import gaussian_blur2d
 
 from nvp.face_model import FaceModel
 from nvp.geometry import unposed
 from renderer.inputs import FaceRender, FrameGeometry
+from renderer.masks import gaussian_blur
 from renderer.mouths import MouthBank, interior_vertices, light_costs
 from renderer.warp import sample_pixels
 
@@ -127,11 +127,8 @@ class MouthInteriors:
         gains = self._colour_gains(entries, face.lips)
         moved = sample_pixels(patches, pos / 2**level) * gains[:, :, None, None]  # sample_pixels: as float
         moved = self._in_light(moved, face.light)
-        blurred = gaussian_blur2d(
-            torch.cat([moved, render[None, :, r0p:r1p, c0p:c1p].float().cpu() * 255]),
-            (7, 7),
-            (1.0, 1.0),
-            "replicate",
+        blurred = gaussian_blur(
+            torch.cat([moved, render[None, :, r0p:r1p, c0p:c1p].float().cpu() * 255]), 7, 1.0
         )
         diff = ((blurred[:-1] - blurred[-1:]) ** 2).mean(1)[:, inside]
         return diff.mean(1).sqrt().numpy() if diff.shape[1] else np.zeros(len(entries))

