@@ -123,9 +123,9 @@ def rigidity(target: np.ndarray, source: np.ndarray, edges: np.ndarray, scale: f
 
 def smooth(x: torch.Tensor, sigma: float) -> torch.Tensor:
     """``x`` ``(B, C, H, W)`` low-passed like a Gaussian of about ``sigma`` pixels (≥ 1): averaged over 2×2
-    pixels, blurred by ``sigma / 2`` (kornia) and bilinearly enlarged back. For ``sigma`` 2 the impulse
-    response has a spread of 2.18 pixels; on a 7-channel 144×192 window it takes 1.3 ms instead of 3.0 for
-    the full-size blur (one core), and it runs on every rendered frame."""
+    pixels, blurred by ``sigma / 2`` (:func:`renderer.masks.gaussian_blur`) and bilinearly enlarged back.
+    For ``sigma`` 2 the impulse response has a spread of 2.18 pixels; on a 7-channel 144×192 window it takes
+    1.3 ms instead of 3.0 for the full-size blur (one core), and it runs on every rendered frame."""
     half = sigma / 2
     small = gaussian_blur(F.avg_pool2d(x, 2, ceil_mode=True), 2 * int(np.ceil(2.5 * half)) + 1, half)
     return F.interpolate(small, size=x.shape[-2:], mode="bilinear", align_corners=False)
