@@ -21,9 +21,10 @@ from torch import nn
 from tqdm import tqdm
 
 from nvp.artifact import atomic_path, load_checkpoint
-from nvp.errors import FormatError
+from nvp.errors import FormatError, NvpError
 from nvp.threads import ThreadGovernor
 from renderer.adversarial import critic_loss, generator_loss
+from renderer.divergence import BLOCK, DivergenceGuard
 from renderer.inputs import Rasterizer, blank_face, moved_source
 from renderer.networks import (
     NeuralRenderer,
@@ -91,6 +92,14 @@ class RendererTrainConfig:
     """Steps between preview PNGs (ground truth | interior | final)."""
     seed: int = 0
     """Random seed (initial weights, batches)."""
+    max_grad_norm: float | None = 1.0
+    """The gradient (all parameters together) is scaled down to this norm when it is longer: the usual norm
+    is 0.1-0.7, a batch unlike the rest gives 5-10 (None: no clipping)."""
+    diverge_ratio: float = 3.0
+    """A mean loss over 50 steps this many times the best one so far (or not finite) means the training
+    diverged: it goes back to its state at the last healthy 50 steps with half the learning rate
+    (:mod:`renderer.divergence`), at most ``max_rollbacks`` times, then stops with an error."""
+    max_rollbacks: int = 3
     stop_on_plateau: bool = False
     """End the run when the networks stop improving (:mod:`renderer.plateau`): the learning rate stays at
     ``lr`` while the face's L1 on ``plateau_frames`` held-out frames (in stretches of the footage the training
@@ -327,24 +336,60 @@ def train_renderer(
     # one texture per video; the renderer's own is the first one's
     textures = nn.ModuleList([net.texture])
     textures.extend(copy.deepcopy(net.texture) for _ in caches[1:])
-    opt = torch.optim.Adam([*net.parameters(), *textures[1:].parameters()], lr=cfg.lr)
+    params = [*net.parameters(), *textures[1:].parameters()]
+    opt = torch.optim.Adam(params, lr=cfg.lr)
+    critic = critic_opt = None
+    if cfg.adversarial_weight > 0:
+        from renderer.adversarial import PatchCritic
+
+        critic = PatchCritic().to(device)
+        critic_opt = torch.optim.Adam(critic.parameters(), lr=2e-4, betas=(0.5, 0.999))
     step, elapsed, log_rows = 0, 0.0, []
+    guard = DivergenceGuard(cfg.diverge_ratio)
+
+    def training_state() -> dict:
+        """Everything a checkpoint holds (references to the live tensors: copy before training on)."""
+        return {
+            "net": net.state_dict(),
+            "textures": textures.state_dict(),
+            "opt": opt.state_dict(),
+            "step": step,
+            "elapsed": elapsed,
+            "log": json.dumps(log_rows),
+            "guard": guard.state(),
+            **({"schedule": schedule.state()} if schedule else {}),
+            **({"critic": critic.state_dict(), "critic_opt": critic_opt.state_dict()} if critic else {}),
+        }
+
+    def restore(state: dict) -> tuple[int, list, PlateauSchedule | None, DivergenceGuard]:
+        """Load ``state`` (:func:`training_state`) into the networks and optimisers; returns its step, log,
+        plateau schedule and guard."""
+        net.load_state_dict(state["net"])
+        if "textures" in state or len(caches) > 1:  # (older single-video checkpoints have none)
+            textures.load_state_dict(state["textures"])
+        opt.load_state_dict(state["opt"])
+        if critic is not None and "critic" in state:
+            critic.load_state_dict(state["critic"])
+            critic_opt.load_state_dict(state["critic_opt"])
+        return (
+            int(state["step"]),
+            json.loads(state["log"]),
+            PlateauSchedule.from_state(state["schedule"]) if schedule is not None else None,
+            DivergenceGuard.from_state(cfg.diverge_ratio, state.get("guard")),
+        )
+
     ckpt = out_dir / "checkpoint.pt"
     if ckpt.exists():
         state = load_checkpoint(ckpt, device)
         try:
-            net.load_state_dict(state["net"])
-            if "textures" in state or len(caches) > 1:  # (older single-video checkpoints have none)
-                textures.load_state_dict(state["textures"])
-            opt.load_state_dict(state["opt"])
-            step, elapsed, log_rows = int(state["step"]), float(state["elapsed"]), json.loads(state["log"])
-            if schedule is not None:
-                schedule = PlateauSchedule.from_state(state["schedule"])
+            step, log_rows, schedule, guard = restore(state)
+            elapsed = float(state["elapsed"])
         except (RuntimeError, KeyError, ValueError, TypeError, AttributeError) as e:
             raise FormatError(
                 f"{ckpt} was written by another nvp version, preset or set of videos and cannot be "
                 "resumed; delete it to train from scratch"
             ) from e
+        del state
         if say_resume and main:
             log.warning(
                 "resuming renderer training from %s at step %d (%.1f min trained)", ckpt, step, elapsed / 60
@@ -354,33 +399,10 @@ def train_renderer(
         if not main:
             return
         with atomic_path(ckpt) as tmp:  # flushed and renamed: a kill or power cut keeps the last whole one
-            torch.save(
-                {
-                    "net": net.state_dict(),
-                    "textures": textures.state_dict(),
-                    "opt": opt.state_dict(),
-                    "step": step,
-                    "elapsed": elapsed,
-                    "log": json.dumps(log_rows),
-                    **({"schedule": schedule.state()} if schedule else {}),
-                    **(
-                        {"critic": critic.state_dict(), "critic_opt": critic_opt.state_dict()}
-                        if critic
-                        else {}
-                    ),
-                },
-                tmp,
-            )
+            torch.save(training_state(), tmp)
 
-    critic = critic_opt = None
-    if cfg.adversarial_weight > 0:
-        from renderer.adversarial import PatchCritic
-
-        critic = PatchCritic().to(device)
-        critic_opt = torch.optim.Adam(critic.parameters(), lr=2e-4, betas=(0.5, 0.999))
-        if ckpt.exists() and "critic" in state:
-            critic.load_state_dict(state["critic"])
-            critic_opt.load_state_dict(state["critic_opt"])
+    healthy = copy.deepcopy(training_state())  # where a diverged training goes back to
+    candidate = None  # the next one, once the block after it is healthy too
     perceptual = None
     if cfg.vgg_weights:
         from renderer.perceptual import VGGPerceptual
@@ -409,7 +431,31 @@ def train_renderer(
         elif schedule.must_decay(step, elapsed, steps, cfg.budget_s):
             schedule.start_decay(step, elapsed, "limit", steps - step)
 
-    running: list[float] = []
+    def go_back(to: dict, at: int, block: float) -> tuple[int, list, PlateauSchedule | None, DivergenceGuard]:
+        """Restore the healthy state ``to`` after the block ending at step ``at`` diverged (mean loss
+        ``block``), with the guard's record of it (the rate halves); one error after ``max_rollbacks``."""
+        if len(guard.rollbacks) >= cfg.max_rollbacks:
+            raise NvpError(
+                f"renderer training diverged at step {at} (mean loss of the last steps {block:.4f}, best "
+                f"{guard.best:.4f}) after going back {len(guard.rollbacks)} times with the learning rate "
+                f"halved each time (now {cfg.lr * guard.lr_scale:.1e}); look for footage whose frames differ "
+                "from the rest (another face, a cut, a broken track)"
+            )
+        back_to, rows, plateau, _ = restore(copy.deepcopy(to))  # (the optimiser keeps what it is given)
+        log.warning(
+            "renderer training diverged at step %d (mean loss of the last steps %.4f, best %.4f): going back "
+            "to step %d with the learning rate halved",
+            at,
+            block,
+            guard.best,
+            back_to,
+        )
+        event = {"step": at, "loss": round(block, 6), "best": round(guard.best, 6), "back_to": back_to}
+        rollbacks = [*guard.rollbacks, event]
+        return back_to, rows, plateau, DivergenceGuard(cfg.diverge_ratio, guard.best, rollbacks)
+
+    running: list[float] = []  # the losses since the last row of the log
+    block_losses: list[float] = []  # since the last judgement of the guard
     saved_at = elapsed  # training seconds at the last checkpoint
     t_last = time.perf_counter()
     governor = ThreadGovernor() if str(device) == "cpu" else None  # threads follow the free cores
@@ -422,8 +468,8 @@ def train_renderer(
             progress = schedule.progress(step, elapsed, cfg.budget_s)
         else:
             progress = step / steps if cfg.budget_s is None else max(step / steps, elapsed / cfg.budget_s)
-        for params in opt.param_groups:
-            params["lr"] = learning_rate(cfg, progress)
+        for group_params in opt.param_groups:
+            group_params["lr"] = learning_rate(cfg, progress) * guard.lr_scale
         rng = np.random.default_rng([cfg.seed, step])
         person = int(rng.integers(len(caches))) if len(caches) > 1 else 0
         cache = caches[person]
@@ -448,6 +494,8 @@ def train_renderer(
         loss.backward()
         if world > 1:
             average_gradients(opt, group)
+        if cfg.max_grad_norm is not None:
+            nn.utils.clip_grad_norm_(params, cfg.max_grad_norm)
         opt.step()
         if critic is not None:
             critic_opt.zero_grad(set_to_none=True)  # also drops what the renderer's loss left on it
@@ -461,6 +509,7 @@ def train_renderer(
         if world > 1:  # the processes agree on the time (when to stop) and report the whole batch's loss
             elapsed, value = group.mean(elapsed), group.mean(value)
         running.append(value)
+        block_losses.append(value)
         if schedule is not None and step % cfg.checkpoint_every == 0:
             judge_plateau(step, elapsed, steps)
             last = schedule.end(steps)
@@ -485,6 +534,20 @@ def train_renderer(
         elif elapsed - saved_at >= cfg.checkpoint_seconds:  # by time too: a kill loses a minute at most
             save_checkpoint()
             saved_at = elapsed
+        ending = step >= last or (cfg.budget_s is not None and elapsed >= cfg.budget_s)
+        if (step % BLOCK == 0 or ending) and step > healthy["step"]:
+            block, block_losses = float(np.mean(block_losses)), []
+            if not guard.diverged(block):  # a state is healthy once the block after it was
+                healthy, candidate = candidate or healthy, None
+                if step - healthy["step"] >= cfg.checkpoint_every:
+                    candidate = copy.deepcopy(training_state())
+            else:
+                step, log_rows, schedule, guard = go_back(healthy, step, block)
+                running, candidate, last = [], None, schedule.end(steps) if schedule else steps
+                if not timed:
+                    bar.n = step
+                save_checkpoint()
+                saved_at = elapsed
     bar.close()
     if sources is not None:
         sources.close()
@@ -505,6 +568,7 @@ def train_renderer(
             else {}
         ),
         "processes": world,
+        **({"diverged": guard.rollbacks} if guard.rollbacks else {}),
         **({"videos": list(names)} if names is not None else {}),
         "parameters": count_parameters(net),
         "config": asdict(cfg),

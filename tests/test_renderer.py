@@ -528,6 +528,46 @@ def test_a_training_that_stops_on_a_plateau_decays_ends_and_resumes_exactly(
         train_renderer([cache, cache], cfg, tmp_path / "d", progress=False, preset=TINY)
 
 
+def test_a_diverged_training_goes_back_to_its_last_healthy_state_with_half_the_rate(
+    footage, face_model, tmp_path, monkeypatch, caplog
+):
+    import renderer.train
+    from nvp.errors import NvpError
+
+    path, seq = footage
+    cache = build_cache(path, seq, face_model, TINY, np.arange(10), progress=False)
+    real_loss, calls = renderer.train.renderer_loss, [0]
+
+    def loss_leaving_its_range(*args, spoilt=range(120, 150)):
+        """The loss 20× its value for the calls in ``spoilt``, as a training thrown off by a batch."""
+        calls[0] += 1
+        return real_loss(*args) * (20 if calls[0] - 1 in spoilt else 1)
+
+    monkeypatch.setattr(renderer.train, "renderer_loss", loss_leaving_its_range)
+    cfg = RendererTrainConfig(steps=200, checkpoint_every=50, preview_every=10**6, lr_final=1.0)
+    info = train_renderer(cache, cfg, tmp_path / "a", progress=False, preset=TINY)
+    # steps 101-150 diverged; the state at step 50 is the last one a healthy block followed
+    (event,) = info["diverged"]
+    assert event["step"] == 150 and event["back_to"] == 50 and event["loss"] > 3 * event["best"]
+    assert info["steps"] == 200 and calls[0] == 300  # 150 steps, then 150 again from step 50
+    assert "diverged at step 150" in caplog.text and "going back to step 50" in caplog.text
+    assert [r["step"] for r in info["log"]] == [50, 100, 150, 200]  # the diverged block's row is gone
+    assert info["log"][-1]["loss"] < 1.5 * info["log"][1]["loss"]
+    assert all(torch.isfinite(v).all() for v in load_renderer(tmp_path / "a")[0].state_dict().values())
+    # the rate after the rollback is half the configured one: it stays halved when the run resumes
+    ckpt = torch.load(tmp_path / "a" / "checkpoint.pt", weights_only=False)
+    assert ckpt["guard"]["rollbacks"] == [event]
+    assert ckpt["opt"]["param_groups"][0]["lr"] == pytest.approx(cfg.lr / 2)
+
+    # a training that keeps diverging stops with one error after its rollbacks
+    calls[0] = 0
+    monkeypatch.setattr(
+        renderer.train, "renderer_loss", lambda *a: loss_leaving_its_range(*a, spoilt=range(60, 10**6))
+    )
+    with pytest.raises(NvpError, match="diverged at step 50 .* after going back 2 times"):
+        train_renderer(cache, replace(cfg, max_rollbacks=2), tmp_path / "b", progress=False, preset=TINY)
+
+
 def test_high_frequency_loss_sees_lost_detail_only_inside_the_mask():
     from kornia.filters import gaussian_blur2d
 
