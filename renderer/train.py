@@ -431,9 +431,9 @@ def train_renderer(
         elif schedule.must_decay(step, elapsed, steps, cfg.budget_s):
             schedule.start_decay(step, elapsed, "limit", steps - step)
 
-    def go_back(to: dict, at: int, block: float) -> tuple[int, list, PlateauSchedule | None, DivergenceGuard]:
+    def go_back(to: dict, at: int, block: float) -> tuple[int, list, PlateauSchedule | None]:
         """Restore the healthy state ``to`` after the block ending at step ``at`` diverged (mean loss
-        ``block``), with the guard's record of it (the rate halves); one error after ``max_rollbacks``."""
+        ``block``) and record it in the guard (the rate halves); one error after ``max_rollbacks``."""
         if len(guard.rollbacks) >= cfg.max_rollbacks:
             raise NvpError(
                 f"renderer training diverged at step {at} (mean loss of the last steps {block:.4f}, best "
@@ -450,9 +450,10 @@ def train_renderer(
             guard.best,
             back_to,
         )
-        event = {"step": at, "loss": round(block, 6), "best": round(guard.best, 6), "back_to": back_to}
-        rollbacks = [*guard.rollbacks, event]
-        return back_to, rows, plateau, DivergenceGuard(cfg.diverge_ratio, guard.best, rollbacks)
+        guard.rollbacks.append(
+            {"step": at, "loss": round(block, 6), "best": round(guard.best, 6), "back_to": back_to}
+        )
+        return back_to, rows, plateau
 
     running: list[float] = []  # the losses since the last row of the log
     block_losses: list[float] = []  # since the last judgement of the guard
@@ -460,7 +461,11 @@ def train_renderer(
     t_last = time.perf_counter()
     governor = ThreadGovernor() if str(device) == "cpu" else None  # threads follow the free cores
     last = schedule.end(steps) if schedule else steps  # where the run ends (moves when a decay starts)
-    while step < last and (cfg.budget_s is None or elapsed < cfg.budget_s):
+
+    def goes_on() -> bool:
+        return step < last and (cfg.budget_s is None or elapsed < cfg.budget_s)
+
+    while goes_on():
         if governor is not None:
             governor.update()
         net.train()
@@ -534,15 +539,14 @@ def train_renderer(
         elif elapsed - saved_at >= cfg.checkpoint_seconds:  # by time too: a kill loses a minute at most
             save_checkpoint()
             saved_at = elapsed
-        ending = step >= last or (cfg.budget_s is not None and elapsed >= cfg.budget_s)
-        if (step % BLOCK == 0 or ending) and step > healthy["step"]:
+        if (step % BLOCK == 0 or not goes_on()) and step > healthy["step"]:
             block, block_losses = float(np.mean(block_losses)), []
             if not guard.diverged(block):  # a state is healthy once the block after it was
                 healthy, candidate = candidate or healthy, None
                 if step - healthy["step"] >= cfg.checkpoint_every:
                     candidate = copy.deepcopy(training_state())
             else:
-                step, log_rows, schedule, guard = go_back(healthy, step, block)
+                step, log_rows, schedule = go_back(healthy, step, block)
                 running, candidate, last = [], None, schedule.end(steps) if schedule else steps
                 if not timed:
                     bar.n = step
